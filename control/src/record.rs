@@ -1,0 +1,1 @@
+//! Recording of runs as MCAP with JSON schemas.

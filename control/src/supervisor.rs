@@ -1,0 +1,1 @@
+//! Supervisor state machine: Idle, Aligning, Tracking, Stopping, Stopped and Fault.

@@ -1,0 +1,1 @@
+//! Reference trajectories: quasi-trapezoidal profiles with parabolic blends, quintic segments through waypoints.
