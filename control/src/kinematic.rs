@@ -1,1 +1,346 @@
-//! Controller 2: kinematic tracking with per-wheel inverse kinematics and whole-platform desaturation.
+//! Controller 2: kinematic tracking with per-wheel inverse kinematics.
+//!
+//! Each cycle:
+//! 1. Commanded platform motion = feed-forward + gain × error:
+//!    (ẋ, ẏ)_c = (ẋ*, ẏ*) + k_pos (p* − p̂), θ̇_c = θ̇* + k_θ diff(θ*, θ̂),
+//!    λ̇_c = λ̇* + k_λ (λ* − λ) (gains `kin_k_pos`, `kin_k_heading`, `kin_k_leg`), with p̂, θ̂
+//!    from odometry and λ measured.
+//! 2. Its time derivative for the analytic steering rates: z̈* + K (ż* − ż_prev), where
+//!    ż_prev is the previous cycle's command (what the platform is doing now).
+//! 3. Per wheel: u_i (body contact velocity), φ_i = atan2(u_i), φ̇_i analytically
+//!    ([`crate::model`]), plus `steer_kp`·(angle error).
+//! 4. ±π branch chosen **for the whole platform**: a single flip flag; it toggles (with
+//!    hysteresis) only when the largest steering error under the current branch exceeds
+//!    π/2 + `FLIP_HYSTERESIS` and the other branch is better. No wheel flips alone.
+//! 5. Wheels whose contact speed is below [`crate::dfl::REST_SPEED`] hold their angle.
+//! 6. Rolling speed = ± |u_i| cos(e_i) for steering error |e_i| < π/2, else 0: a wheel
+//!    that still points the wrong way does not roll, and rolls fully once aligned.
+//! 7. Desaturation (seed 004 Sect. on actuator limits, α_s scaling; WPILib
+//!    `desaturateWheelSpeeds`): if any wheel spin, steering rate or leg rate exceeds its
+//!    limit, the whole command is multiplied by 1/ratio so its direction is kept.
+//!
+//! `finished` is raised once the reference, after having moved, is at rest (all reference contact speeds below
+//! 1e-6 m/s) and the pose/leg errors are below 0.1 mm / 1e-4 rad.
+
+// Index loops over parallel per-wheel arrays read better than zipped iterators here.
+#![allow(clippy::needless_range_loop)]
+
+use crate::angle;
+use crate::dfl::{
+    desaturate, limit_ratio, ControlInput, ControlOutput, TrackingController, REST_SPEED,
+};
+use crate::model::{steer_from_velocity, wheel_acceleration_body, wheel_velocity_body};
+use crate::platform::Platform;
+use crate::types::{Command, ReferenceSample, Twist, MAX_WHEELS};
+use std::f64::consts::{FRAC_PI_2, PI};
+
+/// Extra angle (rad) beyond π/2 before the platform-wide ±π branch is switched.
+pub const FLIP_HYSTERESIS: f64 = 0.3;
+
+/// Controller 2 (module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct KinematicController {
+    flip: bool,
+    prev: [f64; 3 + MAX_WHEELS],
+    has_prev: bool,
+    started: bool,
+}
+
+impl KinematicController {
+    /// A controller for platform `p`.
+    pub fn new(p: &Platform) -> Self {
+        let _ = p;
+        Self {
+            flip: false,
+            prev: [0.0; 3 + MAX_WHEELS],
+            has_prev: false,
+            started: false,
+        }
+    }
+
+    /// Resets the internal state (flip branch, previous command) for a new trajectory.
+    pub fn reset(&mut self, p: &Platform, reference: &ReferenceSample) {
+        let _ = (p, reference);
+        self.flip = false;
+        self.has_prev = false;
+        self.started = false;
+    }
+
+    /// Whether the platform-wide ±π branch is currently flipped.
+    pub fn flipped(&self) -> bool {
+        self.flip
+    }
+
+    /// One cycle (module docs).
+    pub fn step(&mut self, p: &Platform, input: &ControlInput) -> ControlOutput {
+        let n = p.n().min(MAX_WHEELS).min(input.measurement.n);
+        let mut out = ControlOutput {
+            command: Command::zero(p.n().min(MAX_WHEELS)),
+            ..ControlOutput::default()
+        };
+        let r = input.reference;
+        let m = input.measurement;
+        let g = &p.gains;
+        let pose = input.pose;
+        let ok = pose.x.is_finite()
+            && pose.y.is_finite()
+            && pose.theta.is_finite()
+            && m.wheels
+                .iter()
+                .take(n)
+                .all(|w| w.leg.is_finite() && w.steer_angle.is_finite())
+            && r.z
+                .iter()
+                .chain(r.dz.iter())
+                .chain(r.ddz.iter())
+                .all(|v| v.is_finite());
+        if !ok || n == 0 {
+            out.singular = true;
+            return out;
+        }
+        // 1. commanded motion
+        let ex = r.z[0] - pose.x;
+        let ey = r.z[1] - pose.y;
+        let eth = angle::diff(r.z[2], pose.theta);
+        let mut cmdv = [0.0; 3 + MAX_WHEELS];
+        cmdv[0] = r.dz[0] + g.kin_k_pos * ex;
+        cmdv[1] = r.dz[1] + g.kin_k_pos * ey;
+        cmdv[2] = r.dz[2] + g.kin_k_heading * eth;
+        let mut max_leg_err: f64 = 0.0;
+        for i in 0..n {
+            let e = r.z[3 + i] - m.wheels[i].leg;
+            max_leg_err = max_leg_err.max(e.abs());
+            cmdv[3 + i] = r.dz[3 + i] + g.kin_k_leg * e;
+        }
+        // 2. its derivative
+        if !self.has_prev {
+            self.prev[..3 + n].copy_from_slice(&r.dz.as_slice()[..3 + n]);
+            self.has_prev = true;
+        }
+        let mut acc = [0.0; 3 + MAX_WHEELS];
+        for c in 0..3 + n {
+            let k = match c {
+                0 | 1 => g.kin_k_pos,
+                2 => g.kin_k_heading,
+                _ => g.kin_k_leg,
+            };
+            acc[c] = r.ddz[c] + k * (r.dz[c] - self.prev[c]);
+        }
+        self.prev = cmdv;
+        let tw = Twist {
+            vx: cmdv[0],
+            vy: cmdv[1],
+            omega: cmdv[2],
+        };
+        // 3. per-wheel inverse kinematics
+        let mut target = [0.0; MAX_WHEELS];
+        let mut ff = [0.0; MAX_WHEELS];
+        let mut speed = [0.0; MAX_WHEELS];
+        let mut moving = [false; MAX_WHEELS];
+        let mut min_speed = f64::INFINITY;
+        let mut fastest = (0usize, -1.0);
+        for i in 0..n {
+            let leg = m.wheels[i].leg;
+            let u = wheel_velocity_body(p, i, pose.theta, leg, &tw, cmdv[3 + i]);
+            let du = wheel_acceleration_body(
+                p,
+                i,
+                pose.theta,
+                leg,
+                cmdv[3 + i],
+                acc[3 + i],
+                [cmdv[0], cmdv[1], cmdv[2]],
+                [acc[0], acc[1], acc[2]],
+            );
+            let sp = u[0].hypot(u[1]);
+            min_speed = min_speed.min(sp);
+            if sp > fastest.1 {
+                fastest = (i, sp);
+            }
+            if sp >= REST_SPEED {
+                let w = steer_from_velocity(u, du);
+                target[i] = w.steer_angle;
+                ff[i] = w.steer_rate;
+                speed[i] = sp;
+                moving[i] = true;
+            } else {
+                target[i] = m.wheels[i].steer_angle;
+                // a wheel at rest still rolls its (tiny) projected speed
+                let phi = m.wheels[i].steer_angle;
+                speed[i] = u[0] * phi.cos() + u[1] * phi.sin();
+            }
+        }
+        // 4. platform-wide branch with hysteresis
+        let worst = |flip: bool| -> f64 {
+            let off = if flip { PI } else { 0.0 };
+            (0..n)
+                .filter(|&i| moving[i])
+                .map(|i| angle::diff(target[i] + off, m.wheels[i].steer_angle).abs())
+                .fold(0.0, f64::max)
+        };
+        let cur = worst(self.flip);
+        if cur > FRAC_PI_2 + FLIP_HYSTERESIS && worst(!self.flip) < cur {
+            self.flip = !self.flip;
+        }
+        let (off, sign) = if self.flip { (PI, -1.0) } else { (0.0, 1.0) };
+        // 5.–6. steering and rolling
+        for i in 0..n {
+            let phi = m.wheels[i].steer_angle;
+            let (rate, roll) = if moving[i] {
+                let e = angle::diff(target[i] + off, phi);
+                let scale = if e.abs() < FRAC_PI_2 { e.cos() } else { 0.0 };
+                (ff[i] + g.steer_kp * e, sign * speed[i] * scale)
+            } else {
+                (0.0, speed[i])
+            };
+            out.command.wheels[i].steer_rate = rate;
+            out.command.wheels[i].wheel_speed = roll / p.wheel_radius;
+        }
+        // 7. desaturation as a whole
+        let ratio = limit_ratio(p, &out.command, &cmdv[3..3 + n]);
+        out.limit_ratio = ratio;
+        out.saturated = desaturate(&mut out.command, ratio);
+        out.reference_wheel = fastest.0;
+        out.min_wheel_speed = min_speed;
+        // termination
+        let rtw = r.twist_world();
+        let ref_rest = (0..n).all(|i| {
+            let u = wheel_velocity_body(p, i, r.z[2], r.z[3 + i], &rtw, r.dz[3 + i]);
+            u[0].hypot(u[1]) < 1e-6
+        });
+        self.started |= !ref_rest;
+        out.finished = self.started
+            && ref_rest
+            && ex.hypot(ey) < 1e-4
+            && eth.abs() < 1e-4
+            && max_leg_err < 1e-4;
+        if out.finished {
+            out.command = Command::zero(out.command.n);
+        }
+        out
+    }
+}
+
+impl TrackingController for KinematicController {
+    fn reset(&mut self, p: &Platform, reference: &ReferenceSample) {
+        KinematicController::reset(self, p, reference)
+    }
+    fn step(&mut self, p: &Platform, input: &ControlInput) -> ControlOutput {
+        KinematicController::step(self, p, input)
+    }
+    fn name(&self) -> &'static str {
+        "kinematic"
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dfl::harness::run;
+    use crate::trajectory::{seed000_experiment, ComponentTrajectory, QuasiTrapezoid, Trajectory};
+
+    #[test]
+    fn kinematic_tracks_the_seed000_experiment() {
+        let p = Platform::justin();
+        let traj = seed000_experiment(&p);
+        let mut c = KinematicController::new(&p);
+        let st = run(&mut c, &p, &traj, 3.0);
+        eprintln!("kinematic seed-000 run: {st:#?}");
+        assert!(st.max_pos < 1e-3, "max position error {} m", st.max_pos);
+        assert!(
+            st.max_head < 0.1f64.to_radians(),
+            "max heading error {}",
+            st.max_head
+        );
+        assert!(st.max_leg < 1e-3, "max leg error {}", st.max_leg);
+        assert!(st.final_pos < 1e-3 && st.final_head < 0.1f64.to_radians() && st.final_leg < 1e-3);
+        assert!(
+            st.max_ratio <= 1.0 && !st.saturated,
+            "limit ratio {}",
+            st.max_ratio
+        );
+        assert!(
+            st.max_steer_jump < 0.05,
+            "steering-rate spike {}",
+            st.max_steer_jump
+        );
+        assert!(
+            st.max_steer_rate < 1.2,
+            "steering rate {}",
+            st.max_steer_rate
+        );
+    }
+
+    #[test]
+    fn kinematic_starts_and_stops_at_rest() {
+        let p = Platform::justin();
+        let q = |a: f64, b: f64, v: f64, acc: f64| QuasiTrapezoid::new(a, b, v, acc, 0.0).unwrap();
+        let legs = [q(0.45, 0.50, 0.02, 0.01); 4];
+        let traj = ComponentTrajectory::new(
+            q(0.0, 1.0, 0.3, 0.2),
+            q(0.0, -0.5, 0.2, 0.2),
+            q(0.0, 0.8, 0.3, 0.3),
+            &legs,
+        );
+        let mut c = KinematicController::new(&p);
+        let st = run(&mut c, &p, &traj, 3.0);
+        eprintln!("kinematic rest-to-rest run: {st:#?}");
+        assert!(st.max_pos < 1e-3, "max position error {} m", st.max_pos);
+        assert!(st.final_pos < 1e-3 && st.final_head < 0.1f64.to_radians() && st.final_leg < 1e-3);
+        assert!(
+            st.finished_at.is_some(),
+            "must report finished once at rest on the goal"
+        );
+        assert_eq!(st.final_command_max, 0.0);
+        assert!(st.max_ratio <= 1.0);
+    }
+
+    #[test]
+    fn limits_scale_the_whole_command() {
+        let p = Platform::justin();
+        let q = |a: f64, b: f64| QuasiTrapezoid::new(a, b, 3.0, 2.0, 0.0).unwrap();
+        let legs = [QuasiTrapezoid::hold(0.45); 4];
+        let traj = ComponentTrajectory::new(
+            q(0.0, 6.0),
+            QuasiTrapezoid::hold(0.0),
+            QuasiTrapezoid::hold(0.0),
+            &legs,
+        );
+        let r = traj.sample(2.5);
+        let mut m = crate::types::Measurement {
+            n: 4,
+            ..Default::default()
+        };
+        for i in 0..4 {
+            m.wheels[i].leg = 0.45;
+        }
+        let mut c = KinematicController::new(&p);
+        c.reset(&p, &r);
+        let out = c.step(
+            &p,
+            &ControlInput {
+                t: 2.5,
+                dt: 0.004,
+                measurement: &m,
+                pose: r.pose(),
+                reference: &r,
+            },
+        );
+        assert!(out.saturated && out.limit_ratio > 1.0);
+        let lim = p.limits.wheel_speed;
+        let mx = out
+            .command
+            .wheels
+            .iter()
+            .map(|w| w.wheel_speed.abs())
+            .fold(0.0, f64::max);
+        assert!(
+            (mx - lim).abs() < 1e-9,
+            "largest wheel exactly at its limit: {mx}"
+        );
+        // all wheels equal (pure translation): scaled together, not clamped one by one
+        for w in out.command.wheels.iter().take(4) {
+            assert!((w.wheel_speed - out.command.wheels[0].wheel_speed).abs() < 1e-9);
+        }
+    }
+}
