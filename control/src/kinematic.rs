@@ -319,6 +319,7 @@ mod tests {
         let out = c.step(
             &p,
             &ControlInput {
+                measured_twist: None,
                 t: 2.5,
                 dt: 0.004,
                 measurement: &m,

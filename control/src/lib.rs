@@ -8,6 +8,7 @@
 pub mod angle;
 pub mod avoidance;
 pub mod dfl;
+pub mod ideal_plant;
 pub mod kinematic;
 pub mod model;
 pub mod odometry;
@@ -15,6 +16,7 @@ pub mod platform;
 pub mod plot;
 pub mod record;
 pub mod runtime;
+pub mod scenario;
 pub mod supervisor;
 pub mod trajectory;
 pub mod types;

@@ -380,7 +380,11 @@ mod tests {
             let mut last = Pose::default();
             for k in 1..=steps {
                 last = o
-                    .update(&p, &sampled_translation_while_turning(&p, k as f64 * dt), dt)
+                    .update(
+                        &p,
+                        &sampled_translation_while_turning(&p, k as f64 * dt),
+                        dt,
+                    )
                     .pose;
             }
             let t = steps as f64 * dt;
@@ -394,6 +398,9 @@ mod tests {
         assert!(th_c.abs() < 1e-5, "heading error {th_c}");
         assert!(th_z.abs() > 1e-4, "zero-order-hold heading lead {th_z}");
         // The zero-order-hold reading of the same samples drifts (v·ω·dt/2 per second).
-        assert!(pos_z > 5.0 * pos_c && pos_z > 5e-4, "zero-order-hold model error {pos_z} m");
+        assert!(
+            pos_z > 5.0 * pos_c && pos_z > 5e-4,
+            "zero-order-hold model error {pos_z} m"
+        );
     }
 }

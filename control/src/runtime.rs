@@ -1,1 +1,1271 @@
-//! The 250 Hz cycle: sans-IO cycle core, lockstep driver and real-time cycle thread.
+//! The 250 Hz cycle: a sans-IO cycle core, a lockstep driver on virtual time, and the
+//! real-time cycle thread. All three share the same step code.
+//!
+//! One cycle (DESIGN.md "The 250 Hz cycle"):
+//!
+//! ```text
+//!  t_k            t_k + window                         t_k + period
+//!   │ SYNC ──►     │ decode → odometry → supervisor →   │
+//!   │ feedback ◄── │ avoidance → controller → encode    │
+//!   │              │ SETPOINT ──► (one per module)      │
+//! ```
+//!
+//! [`CycleCore`] is the whole cycle minus IO and clocks: [`CycleCore::start_cycle`] returns the
+//! SYNC frame, [`CycleCore::on_frame`] takes every received frame, and
+//! [`CycleCore::finish_cycle`] runs the control step and returns the setpoint frames and the
+//! cycle's [`CycleRecord`]. It never allocates after construction.
+//!
+//! [`run_lockstep`] drives the core and a simulated bus peer (the simulator) on virtual time:
+//! deterministic and as fast as the CPU allows. [`run_realtime`] drives it from a cycle thread
+//! with absolute deadlines (`clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)`), optionally
+//! SCHED_FIFO and locked memory, and hands records to a recorder over a bounded channel with
+//! `try_send` (a full channel drops the record and counts it: the cycle never blocks on IO).
+
+use crate::avoidance::{Avoidance, AvoidanceConfig};
+use crate::dfl::{alignment_command, ControlInput, DflController, TrackingController};
+use crate::kinematic::KinematicController;
+use crate::model::wheel_positions;
+use crate::odometry::Odometry;
+use crate::platform::Platform;
+use crate::record::{AvoidanceRecord, CycleRecord, FrameRecord};
+use crate::supervisor::{
+    command_at_rest, stop_command, Mode, Supervisor, SupervisorConfig, SupervisorInput,
+    SupervisorState,
+};
+use crate::trajectory::Trajectory;
+use crate::types::{Command, Measurement, Pose, ReferenceSample, MAX_WHEELS};
+use rollbase_driver::bus::{BusError, CanBus};
+use rollbase_driver::codec::{
+    encode, FeedbackA, FeedbackB, Message, ModuleState, Payload, Setpoint, SetpointFlags, Sync,
+};
+use rollbase_driver::frame::{CanFrame, TimestampedFrame};
+use rollbase_driver::rx::{CounterPolicy, Receiver, RxError};
+use rollbase_driver::DecodeError;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{SyncSender, TrySendError};
+use std::time::Duration;
+
+/// Which tracking controller the runtime uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ControllerKind {
+    /// Dynamic feedback linearization (seed 000).
+    Dfl,
+    /// Kinematic tracking with inverse kinematics.
+    Kinematic,
+}
+
+impl std::str::FromStr for ControllerKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "dfl" => Ok(Self::Dfl),
+            "kinematic" | "kin" => Ok(Self::Kinematic),
+            other => Err(format!(
+                "unknown controller `{other}`: use `dfl` or `kinematic`"
+            )),
+        }
+    }
+}
+
+/// Runtime options shared by lockstep and real time.
+#[derive(Clone, Debug)]
+pub struct RuntimeConfig {
+    /// Tracking controller.
+    pub controller: ControllerKind,
+    /// Singularity avoidance (`None` = off).
+    pub avoidance: Option<AvoidanceConfig>,
+    /// Supervisor thresholds.
+    pub supervisor: SupervisorConfig,
+    /// Feedback collection window inside the cycle (s after SYNC).
+    pub feedback_window: f64,
+    /// Counter policy of the receive path. The default accepts a frame after a counter jump
+    /// (and counts the loss) so one lost frame costs one frame, not two.
+    pub counter_policy: CounterPolicy,
+    /// Cycles to stay in Stopped/Fault at rest before the run reports itself done.
+    pub linger_cycles: u32,
+}
+
+impl Default for RuntimeConfig {
+    fn default() -> Self {
+        Self {
+            controller: ControllerKind::Dfl,
+            avoidance: None,
+            supervisor: SupervisorConfig::default(),
+            feedback_window: 0.002,
+            counter_policy: CounterPolicy::AcceptWithLoss,
+            linger_cycles: 25,
+        }
+    }
+}
+
+/// Errors that stop a run before or while it starts.
+#[derive(Debug, thiserror::Error)]
+pub enum RuntimeError {
+    /// The trajectory and the platform disagree.
+    #[error("trajectory has {traj} legs but the platform has {platform} wheels")]
+    LegCount {
+        /// Legs in the trajectory.
+        traj: usize,
+        /// Wheels on the platform.
+        platform: usize,
+    },
+    /// The platform description is invalid.
+    #[error(transparent)]
+    Config(#[from] crate::platform::ConfigError),
+    /// The bus failed in a way the run cannot continue from.
+    #[error("bus error: {0}")]
+    Bus(#[from] BusError),
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+struct WheelFeedback {
+    a: Option<FeedbackA>,
+    b: Option<FeedbackB>,
+    a_cycle: Option<u64>,
+    b_cycle: Option<u64>,
+    a_time: f64,
+    b_time: f64,
+    state: Option<ModuleState>,
+    fault_code: u8,
+}
+
+/// The cycle minus IO and clocks.
+pub struct CycleCore {
+    platform: Platform,
+    cfg: RuntimeConfig,
+    n: usize,
+    nodes: [u8; MAX_WHEELS],
+    node_to_wheel: [Option<usize>; 16],
+    rx: Receiver,
+    odom: Odometry,
+    sup: Supervisor,
+    controller: Box<dyn TrackingController + Send>,
+    avoidance: Option<Avoidance>,
+    trajectory: Box<dyn Trajectory>,
+    fb: [WheelFeedback; MAX_WHEELS],
+    cycle: u64,
+    sync_counter: u8,
+    setpoint_counter: [u8; MAX_WHEELS],
+    last_cmd: Command,
+    track_start_cycle: Option<u64>,
+    record: CycleRecord,
+    stop_requested: bool,
+    bus_error: bool,
+    done_cycles: u32,
+    controller_moved: bool,
+    rejected_this_cycle: u32,
+    wheel_xy: [[f64; 2]; MAX_WHEELS],
+}
+
+fn rx_error_kind(e: &RxError) -> &'static str {
+    match e {
+        RxError::RepeatedCounter { .. } => "repeated_counter",
+        RxError::SkippedCounter { .. } => "skipped_counter",
+        RxError::Decode(d) => match d {
+            DecodeError::UnknownId { .. } => "unknown_id",
+            DecodeError::BadCrc { .. } => "bad_crc",
+            DecodeError::WrongDlc { .. } => "wrong_dlc",
+            DecodeError::OutOfRange { .. } => "out_of_range",
+            _ => "invalid",
+        },
+    }
+}
+
+impl CycleCore {
+    /// Builds the core; allocates everything it will ever need.
+    pub fn new(
+        platform: Platform,
+        trajectory: Box<dyn Trajectory>,
+        cfg: RuntimeConfig,
+    ) -> Result<Self, RuntimeError> {
+        platform.validate()?;
+        let n = platform.n();
+        if trajectory.n_legs() != n {
+            return Err(RuntimeError::LegCount {
+                traj: trajectory.n_legs(),
+                platform: n,
+            });
+        }
+        let mut nodes = [0u8; MAX_WHEELS];
+        let mut node_to_wheel = [None; 16];
+        for (i, w) in platform.wheels.iter().enumerate() {
+            nodes[i] = w.node;
+            node_to_wheel[w.node as usize & 15] = Some(i);
+        }
+        let r0 = trajectory.sample(0.0);
+        let start = r0.pose();
+        let controller: Box<dyn TrackingController + Send> = match cfg.controller {
+            ControllerKind::Dfl => Box::new(DflController::new(&platform)),
+            ControllerKind::Kinematic => Box::new(KinematicController::new(&platform)),
+        };
+        let avoidance = cfg.avoidance.map(|a| Avoidance::new(&platform, a));
+        let sup = Supervisor::new(&platform, cfg.supervisor);
+        let rx = Receiver::with_policy(cfg.counter_policy);
+        let mut record = CycleRecord::new(0, 0.0, n);
+        record.nodes = nodes;
+        let mut legs = [0.0; MAX_WHEELS];
+        legs[..n].copy_from_slice(&r0.z.as_slice()[3..3 + n]);
+        let wheel_xy = wheel_positions(&platform, &legs[..n]);
+        Ok(Self {
+            n,
+            nodes,
+            node_to_wheel,
+            rx,
+            odom: Odometry::new(start),
+            sup,
+            controller,
+            avoidance,
+            trajectory,
+            fb: [WheelFeedback::default(); MAX_WHEELS],
+            cycle: 0,
+            sync_counter: 0,
+            setpoint_counter: [0; MAX_WHEELS],
+            last_cmd: Command::zero(n),
+            track_start_cycle: None,
+            record,
+            stop_requested: false,
+            bus_error: false,
+            done_cycles: 0,
+            controller_moved: false,
+            rejected_this_cycle: 0,
+            wheel_xy,
+            platform,
+            cfg,
+        })
+    }
+
+    /// The platform.
+    pub fn platform(&self) -> &Platform {
+        &self.platform
+    }
+
+    /// Supervisor state.
+    pub fn state(&self) -> SupervisorState {
+        self.sup.state()
+    }
+
+    /// The supervisor (state, reason).
+    pub fn supervisor(&self) -> &Supervisor {
+        &self.sup
+    }
+
+    /// Receive statistics (accepted and rejected frames by kind).
+    pub fn rx_stats(&self) -> &rollbase_driver::rx::RxStats {
+        self.rx.stats()
+    }
+
+    /// Cycles run so far.
+    pub fn cycles(&self) -> u64 {
+        self.cycle
+    }
+
+    /// Wheel contact points in the body frame at the latest measured leg extensions.
+    pub fn wheel_xy(&self) -> &[[f64; 2]] {
+        &self.wheel_xy[..self.n]
+    }
+
+    /// Arms the platform (Idle/Stopped/Fault → Aligning). Re-arming after a fault clears it.
+    pub fn arm(&mut self) -> bool {
+        self.stop_requested = false;
+        self.bus_error = false;
+        self.done_cycles = 0;
+        self.track_start_cycle = None;
+        self.sup.arm()
+    }
+
+    /// Operator stop (Ctrl-C): a controlled stop, then the run ends.
+    pub fn request_stop(&mut self) {
+        self.stop_requested = true;
+    }
+
+    /// The bus reported an error (interface down, bus-off): fault and controlled stop.
+    pub fn report_bus_error(&mut self) {
+        self.bus_error = true;
+    }
+
+    /// True once the platform has been at rest in Stopped, Fault or Idle (after a stop
+    /// request) for [`RuntimeConfig::linger_cycles`] cycles.
+    pub fn done(&self) -> bool {
+        self.done_cycles >= self.cfg.linger_cycles
+    }
+
+    /// Starts cycle `k` at time `t` (s): returns the SYNC frame to send first.
+    pub fn start_cycle(&mut self, t: f64) -> CanFrame {
+        let mut rec = CycleRecord::new(self.cycle, t, self.n);
+        rec.nodes = self.nodes;
+        self.record = rec;
+        self.rejected_this_cycle = 0;
+        let msg = Message {
+            node: 0,
+            counter: self.sync_counter,
+            payload: Payload::Sync(Sync {
+                cycle: (self.cycle & 0xFFFF) as u16,
+            }),
+        };
+        self.sync_counter = (self.sync_counter + 1) & 0x0F;
+        // SYNC always encodes (node 0, counter < 16, raw cycle).
+        let frame = encode(&msg).unwrap_or_else(|_| blank_frame());
+        self.push_tx(t, &frame);
+        frame
+    }
+
+    fn push_tx(&mut self, t: f64, f: &CanFrame) {
+        let mut data = [0u8; 8];
+        data[..f.len()].copy_from_slice(f.data());
+        self.record.push_tx(FrameRecord {
+            t,
+            id: f.id(),
+            len: f.len() as u8,
+            data,
+            error: None,
+        });
+    }
+
+    /// Takes one received frame (its timestamp in s on the run's time base).
+    pub fn on_frame(&mut self, frame: &CanFrame, t: f64) {
+        let mut data = [0u8; 8];
+        data[..frame.len()].copy_from_slice(frame.data());
+        self.record.timing.frames_in += 1;
+        let result = self.rx.accept(frame);
+        let error = match &result {
+            Ok(_) => None,
+            Err(e) => {
+                self.rejected_this_cycle += 1;
+                Some(rx_error_kind(e))
+            }
+        };
+        self.record.push_rx(FrameRecord {
+            t,
+            id: frame.id(),
+            len: frame.len() as u8,
+            data,
+            error,
+        });
+        let Ok(msg) = result else { return };
+        let Some(w) = self.node_to_wheel.get(msg.node as usize).copied().flatten() else {
+            return;
+        };
+        if w >= self.n {
+            return;
+        }
+        let fb = &mut self.fb[w];
+        match msg.payload {
+            Payload::FeedbackA(a) => {
+                fb.a = Some(a);
+                fb.a_cycle = Some(self.cycle);
+                fb.a_time = t;
+            }
+            Payload::FeedbackB(b) => {
+                fb.b = Some(b);
+                fb.b_cycle = Some(self.cycle);
+                fb.b_time = t;
+            }
+            Payload::Status(s) => {
+                fb.state = Some(s.state);
+                fb.fault_code = s.fault_code;
+            }
+            _ => {}
+        }
+    }
+
+    fn measurement(&self) -> (Measurement, [u32; MAX_WHEELS], f64) {
+        let mut m = Measurement {
+            n: self.n,
+            ..Default::default()
+        };
+        let mut age = [0u32; MAX_WHEELS];
+        let mut oldest = f64::NEG_INFINITY;
+        #[allow(clippy::needless_range_loop)] // parallel per-wheel arrays
+        for i in 0..self.n {
+            let fb = &self.fb[i];
+            if let Some(a) = fb.a {
+                m.wheels[i].steer_angle = a.steer_angle;
+                m.wheels[i].steer_rate = a.steer_rate;
+                m.wheels[i].wheel_speed = a.wheel_speed;
+            }
+            if let Some(b) = fb.b {
+                m.wheels[i].leg = b.leg_extension;
+                m.wheels[i].leg_rate = b.leg_rate;
+            } else {
+                m.wheels[i].leg = self.platform.wheels[i].lambda_nominal;
+            }
+            let ca = fb.a_cycle.map_or(self.cycle + 1, |c| self.cycle - c);
+            let cb = fb.b_cycle.map_or(self.cycle + 1, |c| self.cycle - c);
+            age[i] = ca.max(cb).min(u32::MAX as u64) as u32;
+            let newest = fb.a_time.min(fb.b_time);
+            if oldest == f64::NEG_INFINITY || newest < oldest {
+                oldest = newest;
+            }
+        }
+        (m, age, oldest)
+    }
+
+    fn reference_time(&self) -> f64 {
+        match self.track_start_cycle {
+            Some(c) => (self.cycle - c) as f64 * self.platform.dt(),
+            None => 0.0,
+        }
+    }
+
+    /// Runs the control step at time `t` (s) and writes the setpoint frames into `out`;
+    /// returns how many were written. The cycle's record is then available from
+    /// [`CycleCore::record`].
+    pub fn finish_cycle(&mut self, t: f64, out: &mut [CanFrame; MAX_WHEELS]) -> usize {
+        let dt = self.platform.dt();
+        let (meas, age, oldest_fb) = self.measurement();
+        for (i, w) in meas.wheels[..self.n].iter().enumerate() {
+            self.wheel_xy[i] = {
+                let a = self.platform.wheels[i].alpha;
+                [w.leg * a.cos(), w.leg * a.sin()]
+            };
+        }
+        let odo = self.odom.update(&self.platform, &meas, dt);
+
+        // Reference: held at the start until tracking begins, then runs from 0.
+        let t_ref = self.reference_time();
+        let nominal = self
+            .trajectory
+            .sample(t_ref.min(self.trajectory.duration()));
+        let (reference, av) = match (&mut self.avoidance, self.sup.state()) {
+            (Some(a), SupervisorState::Tracking) => {
+                let (r, s) = a.step(&self.platform, &nominal, dt);
+                let mut d = [0.0; 3 + MAX_WHEELS];
+                d.copy_from_slice(s.deviation.as_slice());
+                (
+                    r,
+                    AvoidanceRecord {
+                        icr_body: s.icr_body,
+                        active: s.active,
+                        min_distance: s.min_distance,
+                        nearest_wheel: s.nearest_wheel,
+                        d_start: s.d_start,
+                        deviation: d,
+                    },
+                )
+            }
+            _ => (nominal, icr_record(&nominal, &self.wheel_xy[..self.n])),
+        };
+
+        let (align_cmd, align_err) = alignment_command(&self.platform, &meas, &nominal);
+        let mut sup_in = SupervisorInput {
+            feedback_age: age,
+            alignment_error: align_err,
+            bus_error: self.bus_error,
+            slip_residual: odo.residual,
+            stop_requested: self.stop_requested,
+            ..Default::default()
+        };
+        for i in 0..self.n {
+            sup_in.wheel_speed[i] = meas.wheels[i].wheel_speed;
+            sup_in.steer_rate[i] = meas.wheels[i].steer_rate;
+            if self.fb[i].state == Some(ModuleState::Fault) {
+                sup_in.module_fault[i] = Some(self.fb[i].fault_code);
+            }
+        }
+
+        // Controller step (only while tracking) before the supervisor so it can see the result.
+        let tracking_before = self.sup.state() == SupervisorState::Tracking;
+        let mut track_cmd = Command::zero(self.n);
+        if tracking_before {
+            let input = ControlInput {
+                measured_twist: Some(odo.twist_world),
+                t: t_ref,
+                dt,
+                measurement: &meas,
+                pose: odo.pose,
+                reference: &reference,
+            };
+            let o = self.controller.step(&self.platform, &input);
+            track_cmd = o.command;
+            // A DFL reports `singular` until the reference wheel moves faster than ε (it
+            // cannot leave rest on its own, seed 000 Sect. IV); that is waiting, not a fault.
+            // Singular after it has moved is singularity A: a fault.
+            if !o.singular {
+                self.controller_moved = true;
+            }
+            sup_in.controller_singular =
+                (o.singular && self.controller_moved) || !command_finite(&track_cmd);
+            sup_in.trajectory_done = o.finished || t_ref >= self.trajectory.duration();
+        }
+        let at_rest = command_at_rest(&self.last_cmd, self.sup.config().rest_speed);
+        let state_before = self.sup.state();
+        let mode = self.sup.step(&self.platform, &sup_in, at_rest);
+        if self.sup.state() == SupervisorState::Tracking
+            && state_before != SupervisorState::Tracking
+        {
+            // Entering tracking: the reference clock starts now, the controller is initialised
+            // on the reference (perfect matching condition, seed 000 Sect. IV).
+            self.track_start_cycle = Some(self.cycle);
+            self.controller_moved = false;
+            let r0 = self.trajectory.sample(0.0);
+            self.controller.reset(&self.platform, &r0);
+            let input = ControlInput {
+                measured_twist: Some(odo.twist_world),
+                t: 0.0,
+                dt,
+                measurement: &meas,
+                pose: odo.pose,
+                reference: &r0,
+            };
+            track_cmd = self.controller.step(&self.platform, &input).command;
+        }
+        let (cmd, enable, brake, mode_name) = match mode {
+            Mode::Disabled => (Command::zero(self.n), false, false, "disabled"),
+            Mode::Align => (align_cmd, true, false, "align"),
+            Mode::Track => {
+                if command_finite(&track_cmd) {
+                    (track_cmd, true, false, "track")
+                } else {
+                    (
+                        stop_command(&self.platform, &self.last_cmd, dt),
+                        true,
+                        false,
+                        "decelerate",
+                    )
+                }
+            }
+            Mode::Decelerate => (
+                stop_command(&self.platform, &self.last_cmd, dt),
+                true,
+                false,
+                "decelerate",
+            ),
+            Mode::Hold => (Command::zero(self.n), true, true, "hold"),
+        };
+
+        let mut k = 0;
+        for i in 0..self.n {
+            let c = cmd.wheels[i];
+            let sp = Setpoint {
+                wheel_speed: c.wheel_speed,
+                steer_rate: c.steer_rate,
+                flags: SetpointFlags {
+                    enable,
+                    brake,
+                    fault_reset: false,
+                },
+            };
+            let msg = Message {
+                node: self.nodes[i],
+                counter: self.setpoint_counter[i],
+                payload: Payload::Setpoint(sp),
+            };
+            let frame = match encode(&msg) {
+                Ok(f) => f,
+                Err(_) => {
+                    // Not representable on the wire (beyond the protocol range): never clamp one
+                    // wheel silently; send a braking zero setpoint for this wheel and let the
+                    // supervisor's limit check stop the platform.
+                    let safe = Message {
+                        payload: Payload::Setpoint(Setpoint {
+                            wheel_speed: 0.0,
+                            steer_rate: 0.0,
+                            flags: SetpointFlags {
+                                enable,
+                                brake: true,
+                                fault_reset: false,
+                            },
+                        }),
+                        ..msg
+                    };
+                    match encode(&safe) {
+                        Ok(f) => f,
+                        Err(_) => continue,
+                    }
+                }
+            };
+            self.setpoint_counter[i] = (self.setpoint_counter[i] + 1) & 0x0F;
+            out[k] = frame;
+            k += 1;
+        }
+        for f in out.iter().take(k) {
+            let f = *f;
+            self.push_tx(t, &f);
+        }
+        self.last_cmd = cmd;
+
+        let settled = matches!(
+            self.sup.state(),
+            SupervisorState::Stopped | SupervisorState::Fault
+        ) && command_at_rest(&cmd, self.sup.config().rest_speed);
+        let idle_stop = self.sup.state() == SupervisorState::Idle && self.stop_requested;
+        if settled || idle_stop {
+            self.done_cycles = self.done_cycles.saturating_add(1);
+        } else {
+            self.done_cycles = 0;
+        }
+
+        let r = &mut self.record;
+        r.t = r.t.min(t);
+        r.measurement = meas;
+        r.feedback_age = age;
+        for i in 0..self.n {
+            r.module_state[i] = self.fb[i].state.map_or(255, |s| s.to_raw());
+        }
+        r.nominal = nominal;
+        r.reference = reference;
+        r.command = cmd;
+        r.mode = mode_name;
+        r.enable = enable;
+        r.pose = odo.pose;
+        r.twist_body = odo.twist_body;
+        r.slip_residual = odo.residual;
+        r.avoidance = av;
+        r.wheel_xy = self.wheel_xy;
+        r.state = self.sup.state();
+        r.reason = self.sup.reason();
+        r.timing.frames_out = r.n_tx as u32;
+        r.timing.rejected = self.rejected_this_cycle;
+        r.timing.feedback_age_us = if oldest_fb.is_finite() {
+            ((t - oldest_fb) * 1e6).max(0.0)
+        } else {
+            f64::NAN
+        };
+        self.cycle += 1;
+        k
+    }
+
+    /// The record of the last finished cycle.
+    pub fn record(&self) -> &CycleRecord {
+        &self.record
+    }
+
+    /// Mutable access to the record (the IO layer adds timing and ground truth).
+    pub fn record_mut(&mut self) -> &mut CycleRecord {
+        &mut self.record
+    }
+}
+
+/// An empty frame with id 0, used to initialise frame buffers.
+fn blank_frame() -> CanFrame {
+    // Id 0 with no data is always a valid classic frame.
+    CanFrame::new(0, &[]).unwrap_or_else(|_| unreachable!("id 0, len 0 is a valid frame"))
+}
+
+fn command_finite(c: &Command) -> bool {
+    c.wheels[..c.n.min(MAX_WHEELS)]
+        .iter()
+        .all(|w| w.wheel_speed.is_finite() && w.steer_rate.is_finite())
+}
+
+/// ICR of the reference's body twist, for the record when avoidance is off.
+fn icr_record(r: &ReferenceSample, wheels: &[[f64; 2]]) -> AvoidanceRecord {
+    let (s, c) = r.z[2].sin_cos();
+    let (vx, vy, w) = (r.dz[0], r.dz[1], r.dz[2]);
+    let bx = c * vx + s * vy;
+    let by = -s * vx + c * vy;
+    let mut rec = AvoidanceRecord {
+        min_distance: f64::INFINITY,
+        ..Default::default()
+    };
+    if w.abs() > 1e-9 {
+        // ICR = point with zero velocity: v + ω × p = 0 → p = (−v_y/ω, v_x/ω).
+        let p = [-by / w, bx / w];
+        rec.icr_body = Some(p);
+        for (i, q) in wheels.iter().enumerate() {
+            let d = ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2)).sqrt();
+            if d < rec.min_distance {
+                rec.min_distance = d;
+                rec.nearest_wheel = Some(i);
+            }
+        }
+    }
+    rec
+}
+
+/// A simulated peer on the bus for lockstep runs (the simulator implements it).
+pub trait LockstepPeer {
+    /// A frame reached the peer at `now`.
+    fn on_frame(&mut self, now: Duration, frame: &CanFrame);
+    /// Advance the peer's own time (plant, watchdogs) to `now`.
+    fn advance_to(&mut self, now: Duration);
+    /// Frames the peer wants to send, with their send times.
+    fn drain_tx(&mut self, out: &mut dyn FnMut(Duration, CanFrame));
+    /// True pose and legs, when the peer knows them.
+    fn truth(&self) -> Option<(Pose, [f64; MAX_WHEELS])> {
+        None
+    }
+}
+
+/// The lockstep bus: what [`run_lockstep`] needs from the in-process virtual bus.
+pub trait LockstepBus {
+    /// Sets the bus's virtual time.
+    fn set_time(&mut self, t: Duration);
+    /// Sends from the controller's node.
+    fn controller_send(&mut self, f: &CanFrame) -> Result<(), BusError>;
+    /// Receives at the controller's node (non-blocking).
+    fn controller_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError>;
+    /// Sends from the simulator's node.
+    fn peer_send(&mut self, f: &CanFrame) -> Result<(), BusError>;
+    /// Receives at the simulator's node (non-blocking).
+    fn peer_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError>;
+}
+
+/// The in-process virtual bus on a virtual clock with a controller node and a simulator node.
+pub struct VirtualLockstepBus {
+    /// The bus (virtual clock).
+    pub bus: rollbase_driver::bus::virtual_bus::VirtualBus,
+    /// The controller's node.
+    pub controller: rollbase_driver::bus::virtual_bus::VirtualNode,
+    /// The simulator's node.
+    pub peer: rollbase_driver::bus::virtual_bus::VirtualNode,
+}
+
+impl VirtualLockstepBus {
+    /// A virtual-clock bus with the given fault model and seed.
+    pub fn new(faults: rollbase_driver::fault::FaultModel, seed: u64) -> Self {
+        use rollbase_driver::bus::virtual_bus::{BusClock, VirtualBus, VirtualBusConfig};
+        let bus = VirtualBus::new(VirtualBusConfig {
+            clock: BusClock::Virtual,
+            faults,
+            seed,
+            queue_capacity: 1024,
+        });
+        let controller = bus.node("controller");
+        let peer = bus.node("simulator");
+        Self {
+            bus,
+            controller,
+            peer,
+        }
+    }
+}
+
+impl LockstepBus for VirtualLockstepBus {
+    fn set_time(&mut self, t: Duration) {
+        self.bus.set_time(t);
+    }
+    fn controller_send(&mut self, f: &CanFrame) -> Result<(), BusError> {
+        self.controller.send(f)
+    }
+    fn controller_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError> {
+        self.controller.try_recv()
+    }
+    fn peer_send(&mut self, f: &CanFrame) -> Result<(), BusError> {
+        self.peer.send(f)
+    }
+    fn peer_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError> {
+        self.peer.try_recv()
+    }
+}
+
+/// Timing and outcome of a lockstep run.
+#[derive(Clone, Debug, Default)]
+pub struct LockstepReport {
+    /// Cycles run.
+    pub cycles: u64,
+    /// Wall-clock compute time of each cycle's control step (µs), for reports only.
+    pub compute_us: Vec<f64>,
+    /// Wall time of the whole run (s).
+    pub wall_s: f64,
+}
+
+/// Runs the core and a peer on virtual time until the core is done, `max_cycles` elapse,
+/// or `stop_at_cycle` requests an operator stop. Each record is passed to `sink`.
+pub fn run_lockstep(
+    core: &mut CycleCore,
+    bus: &mut dyn LockstepBus,
+    peer: &mut dyn LockstepPeer,
+    max_cycles: u64,
+    stop_at_cycle: Option<u64>,
+    sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
+) -> LockstepReport {
+    let period = core.platform().dt();
+    let window = core.cfg.feedback_window.clamp(0.0, period);
+    let mut report = LockstepReport {
+        compute_us: Vec::with_capacity(max_cycles.min(1 << 20) as usize),
+        ..Default::default()
+    };
+    let wall = std::time::Instant::now();
+    let mut pending: Vec<(Duration, CanFrame)> = Vec::with_capacity(64);
+    let mut out = [blank_frame(); MAX_WHEELS];
+    core.arm();
+    let secs = |d: Duration| d.as_secs_f64();
+    for k in 0..max_cycles {
+        if Some(k) == stop_at_cycle {
+            core.request_stop();
+        }
+        let t0 = Duration::from_secs_f64(k as f64 * period);
+        let t_win = Duration::from_secs_f64(k as f64 * period + window);
+        // Peer catches up to the cycle start; its frames go out in time order.
+        peer.advance_to(t0);
+        // Ground truth at the instant the modules sample their encoders (the SYNC), so
+        // errors compare the reference, the estimate and the truth at the same time.
+        let truth_at_sync = peer.truth();
+        flush_peer(bus, peer, &mut pending, t0);
+        bus.set_time(t0);
+        let sync = core.start_cycle(secs(t0));
+        if bus.controller_send(&sync).is_err() {
+            core.report_bus_error();
+        }
+        deliver_to_peer(bus, peer);
+        // Peer answers; frames up to the window's end reach the controller.
+        peer.advance_to(t_win);
+        flush_peer(bus, peer, &mut pending, t_win);
+        bus.set_time(t_win);
+        loop {
+            match bus.controller_recv() {
+                Ok(Some(f)) => core.on_frame(&f.frame, secs(f.timestamp)),
+                Ok(None) => break,
+                Err(_) => {
+                    core.report_bus_error();
+                    break;
+                }
+            }
+        }
+        let c0 = std::time::Instant::now();
+        let m = core.finish_cycle(secs(t_win), &mut out);
+        report.compute_us.push(c0.elapsed().as_secs_f64() * 1e6);
+        for f in out.iter().take(m) {
+            if bus.controller_send(f).is_err() {
+                core.report_bus_error();
+            }
+        }
+        deliver_to_peer(bus, peer);
+        {
+            let rec = core.record_mut();
+            rec.truth = truth_at_sync;
+            rec.timing.period_us = period * 1e6;
+            rec.timing.wakeup_latency_us = 0.0;
+            rec.timing.compute_us = 0.0;
+        }
+        sink(core.record(), core.wheel_xy());
+        report.cycles = k + 1;
+        if core.done() {
+            break;
+        }
+    }
+    report.wall_s = wall.elapsed().as_secs_f64();
+    report
+}
+
+fn flush_peer(
+    bus: &mut dyn LockstepBus,
+    peer: &mut dyn LockstepPeer,
+    pending: &mut Vec<(Duration, CanFrame)>,
+    until: Duration,
+) {
+    peer.drain_tx(&mut |t, f| pending.push((t, f)));
+    // Stable sort keeps the peer's order among frames with equal send times.
+    pending.sort_by_key(|(t, _)| *t);
+    let mut sent = 0;
+    for (t, f) in pending.iter() {
+        if *t > until {
+            break;
+        }
+        bus.set_time(*t);
+        // A failed send from the simulated peer is the same as a lost frame.
+        let _ = bus.peer_send(f);
+        sent += 1;
+    }
+    pending.drain(..sent);
+}
+
+fn deliver_to_peer(bus: &mut dyn LockstepBus, peer: &mut dyn LockstepPeer) {
+    while let Ok(Some(f)) = bus.peer_recv() {
+        peer.on_frame(f.timestamp, &f.frame);
+    }
+}
+
+/// Options of the real-time cycle thread.
+#[derive(Clone, Debug)]
+pub struct RealtimeOptions {
+    /// Try SCHED_FIFO at this priority (1..=99); `None` = normal scheduling.
+    pub fifo_priority: Option<i32>,
+    /// Try to lock memory (mlockall).
+    pub lock_memory: bool,
+    /// Stop after this many cycles (None = until done or stopped).
+    pub max_cycles: Option<u64>,
+}
+
+impl Default for RealtimeOptions {
+    fn default() -> Self {
+        Self {
+            fifo_priority: Some(80),
+            lock_memory: true,
+            max_cycles: None,
+        }
+    }
+}
+
+/// What the real-time thread reports at the end.
+#[derive(Clone, Debug, Default)]
+pub struct RealtimeReport {
+    /// Cycles run.
+    pub cycles: u64,
+    /// Cycles whose control step finished after the next cycle's deadline.
+    pub deadline_misses: u64,
+    /// Records dropped because the recorder channel was full.
+    pub records_dropped: u64,
+    /// What the thread could set up (SCHED_FIFO, mlockall), for the operator.
+    pub setup: Vec<String>,
+    /// Bus errors seen.
+    pub bus_errors: u64,
+}
+
+fn monotonic_now() -> libc::timespec {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes into the provided timespec; CLOCK_MONOTONIC always exists.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    ts
+}
+
+fn ts_ns(ts: &libc::timespec) -> i128 {
+    ts.tv_sec as i128 * 1_000_000_000 + ts.tv_nsec as i128
+}
+
+fn ns_ts(ns: i128) -> libc::timespec {
+    libc::timespec {
+        tv_sec: (ns / 1_000_000_000) as libc::time_t,
+        tv_nsec: (ns % 1_000_000_000) as libc::c_long,
+    }
+}
+
+fn sleep_until(ns: i128) {
+    let ts = ns_ts(ns);
+    loop {
+        // SAFETY: absolute sleep on CLOCK_MONOTONIC with a valid timespec; a null remainder is
+        // allowed with TIMER_ABSTIME.
+        let r = unsafe {
+            libc::clock_nanosleep(
+                libc::CLOCK_MONOTONIC,
+                libc::TIMER_ABSTIME,
+                &ts,
+                std::ptr::null_mut(),
+            )
+        };
+        if r != libc::EINTR {
+            break;
+        }
+    }
+}
+
+/// Tries SCHED_FIFO and mlockall as asked; returns one line per attempt for the operator.
+pub fn realtime_setup(opts: &RealtimeOptions) -> Vec<String> {
+    let mut out = Vec::new();
+    if let Some(prio) = opts.fifo_priority {
+        let param = libc::sched_param {
+            sched_priority: prio.clamp(1, 99),
+        };
+        // SAFETY: sets the calling thread's scheduling policy; the parameter is valid.
+        let r = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) };
+        if r == 0 {
+            out.push(format!(
+                "cycle thread runs SCHED_FIFO priority {}",
+                param.sched_priority
+            ));
+        } else {
+            out.push(format!(
+                "SCHED_FIFO not permitted ({}): running with normal scheduling; grant CAP_SYS_NICE or an rtprio limit for real-time priority",
+                std::io::Error::last_os_error()
+            ));
+        }
+    }
+    if opts.lock_memory {
+        // SAFETY: mlockall has no memory-safety preconditions.
+        let r = unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) };
+        if r == 0 {
+            out.push("memory locked (mlockall)".into());
+        } else {
+            out.push(format!(
+                "mlockall not permitted ({}): memory may be paged; raise the memlock limit or grant CAP_IPC_LOCK",
+                std::io::Error::last_os_error()
+            ));
+        }
+    }
+    out
+}
+
+/// Runs the cycle on the calling thread in real time until done, stopped by `stop` (a
+/// controlled stop, then exit) or `max_cycles`. Records go to `sink` with `try_send`.
+///
+/// `time_origin_unix_ns` is added to record log times so recordings carry Unix time.
+pub fn run_realtime(
+    core: &mut CycleCore,
+    bus: &mut dyn CanBus,
+    stop: &AtomicBool,
+    sink: Option<&SyncSender<CycleRecord>>,
+    opts: &RealtimeOptions,
+    time_origin_unix_ns: u64,
+) -> RealtimeReport {
+    let mut report = RealtimeReport {
+        setup: realtime_setup(opts),
+        ..Default::default()
+    };
+    let period_ns = (core.platform().dt() * 1e9).round() as i128;
+    let window_ns = (core.cfg.feedback_window * 1e9).round() as i128;
+    let start = ts_ns(&monotonic_now()) + period_ns;
+    let std_start = std::time::Instant::now() + Duration::from_nanos(period_ns as u64);
+    let mut out = [blank_frame(); MAX_WHEELS];
+    let mut prev_wake: Option<i128> = None;
+    let mut stop_sent = false;
+    core.arm();
+    let mut k: u64 = 0;
+    let mut deadline = start;
+    loop {
+        if let Some(m) = opts.max_cycles {
+            if k >= m {
+                break;
+            }
+        }
+        sleep_until(deadline);
+        let wake = ts_ns(&monotonic_now());
+        let t = (wake - start) as f64 * 1e-9;
+        let td = (deadline - start) as f64 * 1e-9;
+        if !stop_sent && stop.load(Ordering::Relaxed) {
+            core.request_stop();
+            stop_sent = true;
+        }
+        let sync = core.start_cycle(td);
+        if let Err(e) = bus.send(&sync) {
+            if !e.is_retryable() {
+                core.report_bus_error();
+                report.bus_errors += 1;
+            }
+        }
+        let window_end = std_start + Duration::from_nanos((deadline - start + window_ns) as u64);
+        loop {
+            match bus.recv_until(window_end) {
+                Ok(Some(f)) => {
+                    let rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
+                    core.on_frame(&f.frame, rt);
+                }
+                Ok(None) => break,
+                Err(e) => {
+                    if !e.is_retryable() {
+                        core.report_bus_error();
+                        report.bus_errors += 1;
+                        // Do not spin on a dead interface: wait out the window.
+                        sleep_until(deadline + window_ns);
+                        break;
+                    }
+                }
+            }
+        }
+        let tw = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
+        let m = core.finish_cycle(tw, &mut out);
+        for f in out.iter().take(m) {
+            if let Err(e) = bus.send(f) {
+                if !e.is_retryable() {
+                    core.report_bus_error();
+                    report.bus_errors += 1;
+                }
+            }
+        }
+        let done_ns = ts_ns(&monotonic_now());
+        let miss = done_ns > deadline + period_ns;
+        if miss {
+            report.deadline_misses += 1;
+        }
+        {
+            let rec = core.record_mut();
+            rec.t = td;
+            rec.log_time_ns = time_origin_unix_ns.saturating_add((deadline - start).max(0) as u64);
+            rec.timing.period_us =
+                prev_wake.map_or(period_ns as f64 / 1e3, |p| (wake - p) as f64 / 1e3);
+            rec.timing.wakeup_latency_us = (wake - deadline) as f64 / 1e3;
+            rec.timing.compute_us = (done_ns - wake) as f64 / 1e3;
+            rec.timing.deadline_miss = miss;
+            let _ = t;
+        }
+        prev_wake = Some(wake);
+        if let Some(tx) = sink {
+            match tx.try_send(*core.record()) {
+                Ok(()) => {}
+                Err(TrySendError::Full(_)) => report.records_dropped += 1,
+                Err(TrySendError::Disconnected(_)) => report.records_dropped += 1,
+            }
+        }
+        k += 1;
+        report.cycles = k;
+        if core.done() {
+            break;
+        }
+        deadline += period_ns;
+        // Fell behind by more than a period: count the skipped cycles and resynchronise
+        // instead of bursting to catch up.
+        let now = ts_ns(&monotonic_now());
+        if now > deadline + period_ns {
+            let behind = (now - deadline) / period_ns;
+            report.deadline_misses += behind as u64;
+            deadline += behind * period_ns;
+        }
+    }
+    report
+}
+
+/// Summary figures of a run, accumulated from its records (the `--json` output of the demo).
+#[derive(Clone, Debug, Default)]
+pub struct RunSummary {
+    /// Scenario name.
+    pub scenario: String,
+    /// Cycles run.
+    pub cycles: u64,
+    /// Deadline misses (real time) — 0 in lockstep.
+    pub deadline_misses: u64,
+    /// Largest position error |(x*, y*) − (x, y)| while tracking and after (m).
+    pub max_position_error_m: f64,
+    /// Largest heading error (rad).
+    pub max_heading_error_rad: f64,
+    /// Largest leg error (m).
+    pub max_leg_error_m: f64,
+    /// Position error at the end of the run (m).
+    pub final_position_error_m: f64,
+    /// Largest commanded steering rate (rad/s).
+    pub max_steer_rate_rad_s: f64,
+    /// Largest commanded wheel speed (rad/s).
+    pub max_wheel_speed_rad_s: f64,
+    /// Smallest ICR–wheel distance seen while tracking (m).
+    pub min_icr_wheel_distance_m: f64,
+    /// Cycle periods (µs), for percentiles.
+    pub periods_us: Vec<f64>,
+    /// Compute times (µs), for percentiles.
+    pub compute_us: Vec<f64>,
+    /// Frames rejected by the receive path.
+    pub rejected_frames: u64,
+    /// Final supervisor state.
+    pub final_state: String,
+    /// Fault reason, if the run ended in Fault.
+    pub fault_reason: Option<String>,
+    /// Whether errors were measured against ground truth (simulation) or the estimate.
+    pub against_truth: bool,
+}
+
+/// p-th percentile (0..=100) of `xs` by nearest rank; NaN when empty.
+pub fn percentile(xs: &[f64], p: f64) -> f64 {
+    let mut v: Vec<f64> = xs.iter().copied().filter(|x| x.is_finite()).collect();
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    let rank = ((p / 100.0) * v.len() as f64).ceil().max(1.0) as usize;
+    v[rank.min(v.len()) - 1]
+}
+
+impl RunSummary {
+    /// An empty summary.
+    pub fn new(scenario: &str) -> Self {
+        Self {
+            scenario: scenario.into(),
+            min_icr_wheel_distance_m: f64::INFINITY,
+            ..Default::default()
+        }
+    }
+
+    /// Adds one cycle.
+    pub fn update(&mut self, r: &CycleRecord) {
+        self.cycles = r.cycle + 1;
+        let n = r.n.min(MAX_WHEELS);
+        self.periods_us.push(r.timing.period_us);
+        if r.timing.compute_us > 0.0 {
+            self.compute_us.push(r.timing.compute_us);
+        }
+        if r.timing.deadline_miss {
+            self.deadline_misses += 1;
+        }
+        self.rejected_frames += r.timing.rejected as u64;
+        for w in &r.command.wheels[..n] {
+            self.max_steer_rate_rad_s = self.max_steer_rate_rad_s.max(w.steer_rate.abs());
+            self.max_wheel_speed_rad_s = self.max_wheel_speed_rad_s.max(w.wheel_speed.abs());
+        }
+        self.final_state = r.state.name().into();
+        self.fault_reason = r.reason.map(|x| x.to_string());
+        let tracking = matches!(
+            r.state,
+            SupervisorState::Tracking | SupervisorState::Stopping | SupervisorState::Stopped
+        );
+        if !tracking {
+            return;
+        }
+        if r.avoidance.min_distance.is_finite() {
+            self.min_icr_wheel_distance_m =
+                self.min_icr_wheel_distance_m.min(r.avoidance.min_distance);
+        }
+        let (pose, legs) = match r.truth {
+            Some((p, l)) => {
+                self.against_truth = true;
+                (p, l)
+            }
+            None => {
+                let mut l = [0.0; MAX_WHEELS];
+                for (i, x) in l.iter_mut().enumerate().take(n) {
+                    *x = r.measurement.wheels[i].leg;
+                }
+                (r.pose, l)
+            }
+        };
+        let z = &r.reference.z;
+        let ep = ((z[0] - pose.x).powi(2) + (z[1] - pose.y).powi(2)).sqrt();
+        let eh = crate::angle::diff(z[2], pose.theta).abs();
+        self.max_position_error_m = self.max_position_error_m.max(ep);
+        self.max_heading_error_rad = self.max_heading_error_rad.max(eh);
+        for (i, l) in legs.iter().enumerate().take(n) {
+            self.max_leg_error_m = self.max_leg_error_m.max((z[3 + i] - l).abs());
+        }
+        self.final_position_error_m = ep;
+    }
+
+    /// The one-object JSON of `rollbase demo --json`.
+    pub fn to_json(&self) -> serde_json::Value {
+        let f = |x: f64| {
+            if x.is_finite() {
+                serde_json::json!(x)
+            } else {
+                serde_json::Value::Null
+            }
+        };
+        serde_json::json!({
+            "scenario": self.scenario,
+            "cycles": self.cycles,
+            "deadline_misses": self.deadline_misses,
+            "max_position_error_m": f(self.max_position_error_m),
+            "max_heading_error_rad": f(self.max_heading_error_rad),
+            "max_leg_error_m": f(self.max_leg_error_m),
+            "final_position_error_m": f(self.final_position_error_m),
+            "max_steer_rate_rad_s": f(self.max_steer_rate_rad_s),
+            "max_wheel_speed_rad_s": f(self.max_wheel_speed_rad_s),
+            "min_icr_wheel_distance_m": f(self.min_icr_wheel_distance_m),
+            "cycle_period_p50_us": f(percentile(&self.periods_us, 50.0)),
+            "cycle_period_p99_us": f(percentile(&self.periods_us, 99.0)),
+            "compute_time_p50_us": f(percentile(&self.compute_us, 50.0)),
+            "compute_time_p99_us": f(percentile(&self.compute_us, 99.0)),
+            "rejected_frames": self.rejected_frames,
+            "supervisor_final_state": self.final_state,
+            "fault_reason": self.fault_reason,
+            "errors_against": if self.against_truth { "ground_truth" } else { "estimate" },
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentile_by_nearest_rank() {
+        let xs: Vec<f64> = (1..=100).map(|x| x as f64).collect();
+        assert_eq!(percentile(&xs, 50.0), 50.0);
+        assert_eq!(percentile(&xs, 99.0), 99.0);
+        assert_eq!(percentile(&xs, 100.0), 100.0);
+        assert!(percentile(&[], 50.0).is_nan());
+    }
+
+    #[test]
+    fn icr_of_a_pure_rotation_is_the_origin_and_translation_is_at_infinity() {
+        let mut r = ReferenceSample::default();
+        r.dz[2] = 1.0;
+        let rec = icr_record(&r, &[[0.3, 0.2]]);
+        let p = rec.icr_body.unwrap();
+        assert!(p[0].abs() < 1e-12 && p[1].abs() < 1e-12);
+        r.dz[0] = 1.0;
+        r.dz[2] = 0.0;
+        assert!(icr_record(&r, &[[0.3, 0.2]]).icr_body.is_none());
+        // Moving +x while turning left (ω > 0): the ICR is on the left, at +y = v/ω.
+        r.dz[2] = 0.5;
+        let p = icr_record(&r, &[[0.3, 0.2]]).icr_body.unwrap();
+        assert!((p[0]).abs() < 1e-12 && (p[1] - 2.0).abs() < 1e-12);
+    }
+}
