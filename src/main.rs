@@ -1,3 +1,24 @@
+//! `rollbase`: the command line of the rollbase CAN driver and control stack.
+//!
+//! Every command has `--help`; every failure prints what went wrong and what to do, and exits
+//! non-zero. See README.md for the two first commands (the demo and the tests).
+
+mod app;
+
+use clap::Parser;
+
 fn main() {
-    println!("rollbase");
+    let cli = app::Cli::parse();
+    match app::run(cli) {
+        Ok(code) => std::process::exit(code),
+        Err(e) => {
+            eprintln!("error: {e}");
+            let mut src = std::error::Error::source(&e);
+            while let Some(s) = src {
+                eprintln!("  caused by: {s}");
+                src = s.source();
+            }
+            std::process::exit(2);
+        }
+    }
 }

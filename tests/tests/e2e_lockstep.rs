@@ -1,0 +1,125 @@
+//! Closed-loop end-to-end tests through the full frame path, on virtual time.
+
+use rollbase_control::runtime::ControllerKind;
+use rollbase_control::scenario::Scenario;
+use rollbase_control::supervisor::SupervisorState;
+use rollbase_tests::{run, RunOptions};
+
+fn assert_tracks_seed000(controller: ControllerKind) {
+    let out = run(&RunOptions::new(Scenario::Seed000).with_controller(controller));
+    let s = &out.summary;
+    println!("{controller:?}: {}", s.to_json());
+    assert_eq!(
+        s.final_state, "stopped",
+        "run must end in Stopped: {:?}",
+        s.fault_reason
+    );
+    assert!(
+        s.against_truth,
+        "errors are measured against the simulator's ground truth"
+    );
+    assert!(
+        s.max_position_error_m < 0.005,
+        "max position error {} m",
+        s.max_position_error_m
+    );
+    assert!(
+        s.max_heading_error_rad < 0.5f64.to_radians(),
+        "max heading error {}°",
+        s.max_heading_error_rad.to_degrees()
+    );
+    assert!(
+        s.max_leg_error_m < 0.002,
+        "max leg error {} m",
+        s.max_leg_error_m
+    );
+    assert_eq!(s.rejected_frames, 0, "a clean bus rejects nothing");
+    let p = &out.platform;
+    assert!(s.max_wheel_speed_rad_s <= p.limits.wheel_speed + 1e-9);
+    assert!(s.max_steer_rate_rad_s <= p.limits.steer_rate + 1e-9);
+    // The platform really got there: the true final pose is at the goal (4.5 m, 4.5 m, 2π).
+    let last = out.records.last().expect("records");
+    let (pose, _) = last.truth.expect("simulated truth");
+    let to_goal = (pose.x - 4.5).hypot(pose.y - 4.5);
+    assert!(to_goal < 0.005, "final distance to the goal {to_goal} m");
+    assert!((pose.theta - std::f64::consts::TAU).abs() < 0.5f64.to_radians());
+}
+
+#[test]
+fn seed000_dfl_tracks_through_the_full_frame_path() {
+    assert_tracks_seed000(ControllerKind::Dfl);
+}
+
+#[test]
+fn seed000_kinematic_tracks_through_the_full_frame_path() {
+    assert_tracks_seed000(ControllerKind::Kinematic);
+}
+
+#[test]
+fn seed001_avoidance_keeps_steering_rates_within_limits() {
+    let out = run(&RunOptions::new(Scenario::Seed001));
+    let s = &out.summary;
+    println!("seed001: {}", s.to_json());
+    assert_eq!(s.final_state, "stopped", "{:?}", s.fault_reason);
+    let lim = out.platform.limits.steer_rate;
+    for r in &out.records {
+        for w in &r.command.wheels[..r.n] {
+            assert!(
+                w.steer_rate.abs() <= lim + 1e-9,
+                "cycle {}: steer rate {}",
+                r.cycle,
+                w.steer_rate
+            );
+        }
+    }
+    assert!(s.max_steer_rate_rad_s > 0.0);
+}
+
+#[test]
+fn operator_stop_is_a_controlled_stop() {
+    let mut opts = RunOptions::new(Scenario::Seed000);
+    // Mid-trajectory, at speed (alignment takes well under 2 s).
+    let stop_cycle = 250 * 12;
+    opts.stop_at_cycle = Some(stop_cycle);
+    let out = run(&opts);
+    assert_eq!(out.summary.final_state, "stopped");
+    assert!(out.summary.fault_reason.is_none());
+    let p = &out.platform;
+    let dt = p.dt();
+    let mut stopping_seen = false;
+    for pair in out.records.windows(2) {
+        let (a, b) = (&pair[0], &pair[1]);
+        if b.state == SupervisorState::Stopping {
+            stopping_seen = true;
+            for i in 0..b.n {
+                let dv = (b.command.wheels[i].wheel_speed - a.command.wheels[i].wheel_speed).abs();
+                assert!(
+                    dv <= p.limits.wheel_accel * dt + 1e-9,
+                    "deceleration within the limit"
+                );
+                assert_eq!(
+                    b.command.wheels[i].steer_rate, 0.0,
+                    "steering held while stopping"
+                );
+            }
+        }
+    }
+    assert!(stopping_seen);
+    let first_stop = out
+        .records
+        .iter()
+        .find(|r| r.cycle >= stop_cycle)
+        .expect("cycle");
+    assert_eq!(first_stop.state, SupervisorState::Stopping);
+    // Stopped well before the trajectory's end (31 s).
+    let stopped_at = out
+        .records
+        .iter()
+        .find(|r| r.state == SupervisorState::Stopped)
+        .expect("stopped")
+        .cycle;
+    assert!(
+        stopped_at < stop_cycle + 250,
+        "stopped within 1 s of the request"
+    );
+}

@@ -1,0 +1,79 @@
+//! A real-time run on the in-process bus (wall clock): the cycle thread with absolute 4 ms
+//! deadlines against the simulator in its own thread. The runtime's own deadline-miss count
+//! must be zero; the timing percentiles are printed (not asserted: machines are shared).
+//! This file holds a single test so no other test of this suite competes for the CPU.
+
+use rollbase_control::runtime::{percentile, run_realtime, CycleCore, RealtimeOptions};
+use rollbase_control::scenario::{self, Scenario};
+use rollbase_control::Platform;
+use rollbase_driver::bus::{BusClock, VirtualBus, VirtualBusConfig};
+use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+#[test]
+fn three_seconds_in_real_time_without_deadline_misses() {
+    let p = Platform::justin();
+    let traj = scenario::trajectory(Scenario::Seed000, &p).unwrap();
+    let r0 = traj.sample(0.0);
+    let mut core =
+        CycleCore::new(p.clone(), traj, scenario::runtime_config(Scenario::Seed000)).unwrap();
+    let mut sim =
+        Simulator::new(&p, PlantConfig::default(), FaultSchedule::default(), &r0, 3).unwrap();
+    let bus = VirtualBus::new(VirtualBusConfig {
+        clock: BusClock::Wall,
+        ..Default::default()
+    });
+    let mut ctrl = bus.node("controller");
+    let mut simnode = bus.node("simulator");
+    let sim_stop = Arc::new(AtomicBool::new(false));
+    let ss = sim_stop.clone();
+    let sim_thread = std::thread::spawn(move || sim.run_realtime(&mut simnode, &ss));
+    let (tx, rx) = std::sync::mpsc::sync_channel(4096);
+    let stop = AtomicBool::new(false);
+    let opts = RealtimeOptions {
+        max_cycles: Some(750),
+        ..Default::default()
+    };
+    let report = run_realtime(&mut core, &mut ctrl, &stop, Some(&tx), &opts, 0);
+    drop(tx);
+    sim_stop.store(true, Ordering::SeqCst);
+    sim_thread.join().unwrap().unwrap();
+    let records: Vec<_> = rx.iter().collect();
+    let periods: Vec<f64> = records.iter().skip(1).map(|r| r.timing.period_us).collect();
+    let compute: Vec<f64> = records.iter().map(|r| r.timing.compute_us).collect();
+    let latency: Vec<f64> = records.iter().map(|r| r.timing.wakeup_latency_us).collect();
+    println!("setup: {:?}", report.setup);
+    println!(
+        "cycles {} misses {} dropped {} | period p50 {:.0} p99 {:.0} max {:.0} µs | wake-up latency p50 {:.0} p99 {:.0} µs | compute p50 {:.0} p99 {:.0} µs",
+        report.cycles,
+        report.deadline_misses,
+        report.records_dropped,
+        percentile(&periods, 50.0),
+        percentile(&periods, 99.0),
+        percentile(&periods, 100.0),
+        percentile(&latency, 50.0),
+        percentile(&latency, 99.0),
+        percentile(&compute, 50.0),
+        percentile(&compute, 99.0)
+    );
+    assert_eq!(report.cycles, 750);
+    assert_eq!(report.records_dropped, 0);
+    assert_eq!(records.len(), 750);
+    assert_eq!(
+        report.deadline_misses, 0,
+        "the runtime counted deadline misses"
+    );
+    // The loop is closed for real: the modules answered and the platform is tracking.
+    let last = records.last().unwrap();
+    assert!(
+        last.feedback_age[..last.n].iter().all(|&a| a <= 1),
+        "fresh feedback: {:?}",
+        last.feedback_age
+    );
+    assert!(
+        matches!(last.state.name(), "tracking" | "aligning"),
+        "state {}",
+        last.state.name()
+    );
+}
