@@ -1,1 +1,219 @@
-fn main() {}
+//! `rollbase-sim`: the simulated wheel modules and platform on a CAN bus, in real time.
+//!
+//! ```text
+//! rollbase-sim --bus vcan0 [--config platform.toml] [--plant plant.toml]
+//!              [--faults faults.toml] [--loss P] [--silent NODE:FROM:TO] … [--seed N]
+//!              [--duration S]
+//! ```
+//!
+//! The modules answer the controller's SYNCs (the simulator follows the bus's SYNC pace; it
+//! has no cycle clock of its own), obey its SETPOINTs and move the simulated platform in 1 ms
+//! sub-steps. Ctrl-C stops it cleanly and prints a summary.
+//!
+//! `--bus virtual` creates an in-process virtual bus that no other process can reach: it is
+//! only useful to check a configuration. To run the controller against the simulator without
+//! kernel CAN, use `rollbase demo`, which starts this simulator in-process on a shared
+//! virtual bus.
+
+use clap::Parser;
+use rollbase_control::Platform;
+use rollbase_driver::bus::{self, BusClock, BusError, CanBus, VirtualBus, VirtualBusConfig};
+use rollbase_vcan_sim::{spawn_realtime, FaultArgs, PlantConfig, SimConfig, SimError, Simulator};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+/// Simulated rollbase wheel modules and platform, speaking the wheel-module protocol.
+#[derive(Debug, Parser)]
+#[command(name = "rollbase-sim", version, about, long_about = None)]
+struct Cli {
+    /// CAN interface (vcan0, can0, …) or `virtual` (in-process only; see `rollbase demo`).
+    #[arg(long)]
+    bus: String,
+    /// Platform description (TOML); default: the Justin-like platform.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Plant parameters (TOML: motor time constants, encoder noise …); default values otherwise.
+    #[arg(long, value_name = "FILE")]
+    plant: Option<PathBuf>,
+    #[command(flatten)]
+    faults: FaultArgs,
+    /// Seed for encoder noise and frame faults (a `seed` in the fault file wins for the latter).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Stop after this many seconds (default: run until Ctrl-C).
+    #[arg(long, value_name = "S")]
+    duration: Option<f64>,
+    /// Time from a SYNC to the modules' feedback frames (µs).
+    #[arg(long, value_name = "US", default_value_t = 300.0)]
+    response_latency_us: f64,
+}
+
+#[derive(Debug, thiserror::Error)]
+enum CliError {
+    #[error(transparent)]
+    Sim(#[from] SimError),
+    #[error("cannot open bus {bus}: {source}{hint}")]
+    Open {
+        bus: String,
+        source: BusError,
+        hint: &'static str,
+    },
+    #[error("`{option}` = {value}: {reason}")]
+    Option {
+        option: &'static str,
+        value: String,
+        reason: &'static str,
+    },
+    #[error("cannot start the signal handler runtime: {0}")]
+    Runtime(std::io::Error),
+    #[error("the simulator thread panicked")]
+    Panicked,
+}
+
+fn open_bus(name: &str) -> Result<Box<dyn CanBus>, CliError> {
+    if name == "virtual" {
+        eprintln!(
+            "rollbase-sim: note: the virtual bus lives inside this process; no controller in \
+             another process can reach it. `rollbase demo` runs the simulator in-process with \
+             the controller. Use --bus vcan0 to talk to other processes."
+        );
+        let vbus = VirtualBus::new(VirtualBusConfig {
+            clock: BusClock::Wall,
+            ..VirtualBusConfig::default()
+        });
+        return Ok(Box::new(vbus.node("rollbase-sim")));
+    }
+    bus::open(name).map_err(|source| {
+        let hint = match source {
+            BusError::NoSuchInterface { .. } | BusError::AfCanUnsupported { .. } => {
+                "\n(no kernel CAN here? `rollbase demo` runs controller and simulator in-process \
+                 on the virtual bus)"
+            }
+            _ => "",
+        };
+        CliError::Open {
+            bus: name.to_string(),
+            source,
+            hint,
+        }
+    })
+}
+
+fn run(cli: Cli) -> Result<(), CliError> {
+    let platform = match &cli.config {
+        Some(p) => Platform::load(p).map_err(SimError::from)?,
+        None => Platform::justin(),
+    };
+    let plant = match &cli.plant {
+        Some(p) => PlantConfig::load(p)?,
+        None => PlantConfig::default(),
+    };
+    let faults = cli.faults.to_schedule()?;
+    let duration = match cli.duration {
+        None => None,
+        Some(s) if s.is_finite() && s > 0.0 && s < 1e9 => Some(Duration::from_secs_f64(s)),
+        Some(s) => {
+            return Err(CliError::Option {
+                option: "--duration",
+                value: s.to_string(),
+                reason: "must be a positive number of seconds",
+            })
+        }
+    };
+    let lat = cli.response_latency_us;
+    if !(lat.is_finite() && (0.0..=4000.0).contains(&lat)) {
+        return Err(CliError::Option {
+            option: "--response-latency-us",
+            value: lat.to_string(),
+            reason: "must be between 0 and 4000 µs",
+        });
+    }
+    let cfg = SimConfig {
+        plant,
+        faults,
+        seed: cli.seed,
+        response_latency: Duration::from_secs_f64(lat * 1e-6),
+        ..SimConfig::default()
+    };
+    let sim = Simulator::with_config(&platform, cfg)?;
+    let bus = open_bus(&cli.bus)?;
+    eprintln!(
+        "rollbase-sim: {} modules (nodes {:?}) of platform `{}` on {}; waiting for SYNC. Ctrl-C to stop.",
+        sim.n(),
+        sim.nodes(),
+        platform.name,
+        bus.name()
+    );
+    let stop = Arc::new(AtomicBool::new(false));
+    let handle = spawn_realtime(sim, bus, stop.clone(), duration);
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .map_err(CliError::Runtime)?;
+    rt.block_on(async {
+        loop {
+            tokio::select! {
+                r = tokio::signal::ctrl_c() => {
+                    if let Err(e) = r {
+                        eprintln!("rollbase-sim: cannot listen for Ctrl-C ({e}); stopping");
+                    }
+                    break;
+                }
+                _ = tokio::time::sleep(Duration::from_millis(50)) => {
+                    if handle.is_finished() {
+                        break;
+                    }
+                }
+            }
+        }
+    });
+    stop.store(true, Ordering::Relaxed);
+    let (sim, result) = handle.join().map_err(|_| CliError::Panicked)?;
+    let summary = result?;
+    let st = sim.stats();
+    let truth = sim.truth();
+    eprintln!(
+        "rollbase-sim: ran {:.3} s: {} frames in, {} out ({} send errors, max send lateness {:?}); \
+         {} sub-steps; injected: {} dropped, {} duplicated, {} corrupted",
+        summary.elapsed.as_secs_f64(),
+        summary.frames_in,
+        summary.frames_out,
+        summary.send_errors,
+        summary.max_send_lateness,
+        st.substeps,
+        st.injector.dropped,
+        st.injector.duplicated,
+        st.injector.corrupted,
+    );
+    for (i, m) in st.modules[..st.n].iter().enumerate() {
+        eprintln!(
+            "  node {}: {:?}, {} SYNCs answered, {} setpoints ok, {} bad CRC, {} bad counter, {} watchdog trips",
+            sim.nodes()[i],
+            sim.module_states()[i],
+            m.syncs_answered,
+            m.setpoints_accepted,
+            m.setpoints_bad_crc,
+            m.setpoints_bad_counter,
+            m.watchdog_trips
+        );
+    }
+    eprintln!(
+        "  final pose x = {:.4} m, y = {:.4} m, θ = {:.4} rad",
+        truth.pose.x, truth.pose.y, truth.pose.theta
+    );
+    Ok(())
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("rollbase-sim: error: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,25 @@
+//! The simulator as the controller's lockstep peer
+//! (`rollbase_control::runtime::run_lockstep`).
+
+use crate::sim::Simulator;
+use rollbase_control::runtime::LockstepPeer;
+use rollbase_control::{Pose, MAX_WHEELS};
+use rollbase_driver::frame::CanFrame;
+use std::time::Duration;
+
+/// The simulator is the controller's peer in `rollbase_control::runtime::run_lockstep`.
+impl LockstepPeer for Simulator {
+    fn on_frame(&mut self, now: Duration, frame: &CanFrame) {
+        Simulator::on_frame(self, now, frame);
+    }
+    fn advance_to(&mut self, now: Duration) {
+        Simulator::advance_to(self, now);
+    }
+    fn drain_tx(&mut self, out: &mut dyn FnMut(Duration, CanFrame)) {
+        Simulator::drain_tx(self, &mut |t, f| out(t, f));
+    }
+    fn truth(&self) -> Option<(Pose, [f64; MAX_WHEELS])> {
+        let t = self.truth();
+        Some((t.pose, t.legs))
+    }
+}

@@ -1,0 +1,609 @@
+//! The simulator: plant + one firmware per wheel module + fault schedule, as a sans-IO core.
+//!
+//! Drive it with three calls (all times are simulator time, from 0 at construction):
+//! - [`Simulator::on_frame`]`(now, frame)`: a frame arrived at `now` (the plant is first
+//!   advanced to `now`, then every module sees the frame);
+//! - [`Simulator::advance_to`]`(now)`: step the plant in fixed sub-steps (default 1 ms) on the
+//!   grid `k · substep` up to `now`; at each grid point the scheduled faults fire and the
+//!   firmwares run their timers (boot, setpoint watchdog, STATUS); the motor setpoints in force
+//!   at a grid point drive the plant for the following sub-step;
+//! - [`Simulator::drain_tx`] / [`Simulator::drain_due`]: hand out the frames the modules
+//!   transmit, each with the time it should appear on the bus.
+//!
+//! One cycle: SYNC at `t` → `on_frame(t, sync)` → FEEDBACK_A/B of every module with send time
+//! `t + response_latency` (default 0.3 ms, plus the fault schedule's delay/jitter) → the
+//! controller's SETPOINTs → `on_frame(t_sp, setpoint)` → applied from the next grid point
+//! on (from `t_sp` itself when `t_sp` is a grid point).
+//! The encoder readings in the feedback are those of the last grid point ≤ `t` (delayed by
+//! the plant's `latency_samples`).
+//!
+//! Everything the modules transmit passes through, in order: the module's `silent` windows,
+//! the `bus_off` windows (which also swallow received frames), and one
+//! [`rollbase_driver::fault::FaultInjector`] (loss, delay, jitter, duplication, corruption),
+//! seeded from the schedule's seed or the simulator's seed, so a run is reproducible frame by
+//! frame.
+//!
+//! [`run_realtime`] drives the same core from a real bus in wall-clock time;
+//! [`Simulator::pump`] is the lockstep equivalent for one time instant.
+
+use crate::error::{invalid, SimError};
+use crate::faults::FaultSchedule;
+use crate::firmware::{FirmwareConfig, FirmwareStats, ModuleFirmware};
+use crate::plant::{InitialState, MotorSetpoint, Plant, PlantConfig, PlantTruth};
+use rollbase_control::{Platform, ReferenceSample, MAX_WHEELS};
+use rollbase_driver::bus::CanBus;
+use rollbase_driver::codec::{ModuleState, FAULT_OVERCURRENT};
+use rollbase_driver::fault::{FaultInjector, FaultModel, FaultStats};
+use rollbase_driver::frame::CanFrame;
+use rollbase_driver::rng::splitmix64;
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Capacity of the transmit queue; beyond it the oldest frame is dropped and counted.
+pub const TX_QUEUE_CAPACITY: usize = 1024;
+
+/// Everything the simulator needs besides the platform.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SimConfig {
+    /// Plant parameters.
+    pub plant: PlantConfig,
+    /// Fault schedule.
+    pub faults: FaultSchedule,
+    /// Firmware parameters (same for every module).
+    pub firmware: FirmwareConfig,
+    /// Initial state; `None` = [`InitialState::nominal`].
+    pub initial: Option<InitialState>,
+    /// Plant sub-step (default 1 ms; at most 10 ms).
+    pub substep: Duration,
+    /// Time from a SYNC to the modules' feedback frames (default 0.3 ms).
+    pub response_latency: Duration,
+    /// Master seed: plant noise and (unless the schedule has its own) frame faults.
+    pub seed: u64,
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        Self {
+            plant: PlantConfig::default(),
+            faults: FaultSchedule::default(),
+            firmware: FirmwareConfig::default(),
+            initial: None,
+            substep: Duration::from_millis(1),
+            response_latency: Duration::from_micros(300),
+            seed: 1,
+        }
+    }
+}
+
+/// Simulator counters.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SimStats {
+    /// Frames passed to [`Simulator::on_frame`].
+    pub frames_received: u64,
+    /// Received frames swallowed because the bus was off.
+    pub frames_lost_bus_off_rx: u64,
+    /// Frames the firmwares produced.
+    pub frames_generated: u64,
+    /// Produced frames dropped because their module was silent.
+    pub frames_dropped_silent: u64,
+    /// Produced frames dropped because the bus was off.
+    pub frames_dropped_bus_off: u64,
+    /// Frames put into the transmit queue (after loss and duplication).
+    pub frames_queued: u64,
+    /// Frames dropped because the transmit queue was full (nobody drained it).
+    pub tx_overflow: u64,
+    /// Plant sub-steps taken.
+    pub substeps: u64,
+    /// Scheduled fault events fired so far.
+    pub events_fired: u64,
+    /// The frame fault injector's counters.
+    pub injector: FaultStats,
+    /// Number of modules (entries of `modules`).
+    pub n: usize,
+    /// Per-module firmware counters, in platform wheel order.
+    pub modules: [FirmwareStats; MAX_WHEELS],
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum EventKind {
+    MotorFault,
+    EncoderStuck,
+    EncoderJump(f64),
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Event {
+    at: f64,
+    wheel: usize,
+    kind: EventKind,
+}
+
+/// Plant + firmwares + faults; see the module docs.
+#[derive(Clone, Debug)]
+pub struct Simulator {
+    plant: Plant,
+    firmwares: Vec<ModuleFirmware>,
+    nodes: [u8; MAX_WHEELS],
+    schedule: FaultSchedule,
+    events: Vec<Event>,
+    next_event: usize,
+    injector: FaultInjector,
+    substep: Duration,
+    response_latency: Duration,
+    now: Duration,
+    plant_time: Duration,
+    tx: VecDeque<(Duration, CanFrame)>,
+    scratch: Vec<CanFrame>,
+    latched: Option<[MotorSetpoint; MAX_WHEELS]>,
+    started: bool,
+    stats: SimStats,
+}
+
+fn secs(d: Duration) -> f64 {
+    d.as_secs_f64()
+}
+
+impl Simulator {
+    /// The usual set-up: default firmware, sub-step and response latency; the plant starts at
+    /// the reference's initial pose and legs ([`InitialState::from_reference`]); `seed` drives
+    /// encoder noise and (unless the schedule has its own seed) the frame faults.
+    pub fn new(
+        platform: &Platform,
+        plant: PlantConfig,
+        faults: FaultSchedule,
+        r0: &ReferenceSample,
+        seed: u64,
+    ) -> Result<Self, SimError> {
+        let initial = InitialState::from_reference(platform, r0);
+        Self::with_config(
+            platform,
+            SimConfig {
+                plant,
+                faults,
+                initial: Some(initial),
+                seed,
+                ..SimConfig::default()
+            },
+        )
+    }
+
+    /// Builds the simulator from a full [`SimConfig`]. Fails (naming the field) on an invalid platform, plant
+    /// configuration, fault schedule (including events for nodes the platform does not have),
+    /// initial state, sub-step or latency.
+    pub fn with_config(platform: &Platform, cfg: SimConfig) -> Result<Self, SimError> {
+        platform.validate()?;
+        cfg.faults.validate()?;
+        let nodes_vec: Vec<u8> = platform.wheels.iter().map(|w| w.node).collect();
+        cfg.faults.check_nodes(&nodes_vec)?;
+        if cfg.substep.is_zero() || cfg.substep > Duration::from_millis(10) {
+            return Err(invalid(
+                "substep",
+                format!("{:?}", cfg.substep),
+                "must be greater than 0 and at most 10 ms",
+            ));
+        }
+        if cfg.response_latency > Duration::from_millis(4) {
+            return Err(invalid(
+                "response_latency",
+                format!("{:?}", cfg.response_latency),
+                "must be at most 4 ms (one control cycle)",
+            ));
+        }
+        let mut seed_state = cfg.seed;
+        let plant_seed = splitmix64(&mut seed_state);
+        let fault_seed = cfg
+            .faults
+            .seed
+            .unwrap_or_else(|| splitmix64(&mut seed_state));
+        let initial = cfg
+            .initial
+            .unwrap_or_else(|| InitialState::nominal(platform));
+        let plant = Plant::new(platform, cfg.plant.clone(), initial, plant_seed)?;
+        let mut nodes = [0u8; MAX_WHEELS];
+        nodes[..nodes_vec.len()].copy_from_slice(&nodes_vec);
+        let firmwares = nodes_vec
+            .iter()
+            .map(|&n| ModuleFirmware::new(n, cfg.firmware))
+            .collect();
+        let wheel_of = |node: u8| nodes_vec.iter().position(|&n| n == node).unwrap_or(0);
+        let f = &cfg.faults;
+        let mut events: Vec<Event> = Vec::new();
+        events.extend(f.motor_fault.iter().map(|m| Event {
+            at: m.at,
+            wheel: wheel_of(m.node),
+            kind: EventKind::MotorFault,
+        }));
+        events.extend(f.encoder_stuck.iter().map(|m| Event {
+            at: m.at,
+            wheel: wheel_of(m.node),
+            kind: EventKind::EncoderStuck,
+        }));
+        events.extend(f.encoder_jump.iter().map(|m| Event {
+            at: m.at,
+            wheel: wheel_of(m.node),
+            kind: EventKind::EncoderJump(m.amount),
+        }));
+        events.sort_by(|a, b| a.at.total_cmp(&b.at));
+        let model = FaultModel {
+            drop_prob: f.loss,
+            duplicate_prob: f.duplicate,
+            corrupt_prob: f.corrupt,
+            delay: Duration::from_secs_f64(f.delay),
+            jitter: Duration::from_secs_f64(f.jitter),
+        };
+        let n = nodes_vec.len();
+        Ok(Self {
+            plant,
+            firmwares,
+            nodes,
+            schedule: cfg.faults,
+            events,
+            next_event: 0,
+            injector: FaultInjector::new(model, fault_seed),
+            substep: cfg.substep,
+            response_latency: cfg.response_latency,
+            now: Duration::ZERO,
+            plant_time: Duration::ZERO,
+            tx: VecDeque::with_capacity(TX_QUEUE_CAPACITY),
+            scratch: Vec::with_capacity(8),
+            latched: None,
+            started: false,
+            stats: SimStats {
+                n,
+                ..SimStats::default()
+            },
+        })
+    }
+
+    /// Number of wheel modules.
+    pub fn n(&self) -> usize {
+        self.firmwares.len()
+    }
+
+    /// The modules' CAN nodes, in platform wheel order.
+    pub fn nodes(&self) -> &[u8] {
+        &self.nodes[..self.n()]
+    }
+
+    /// Latest time seen by `on_frame`/`advance_to`.
+    pub fn now(&self) -> Duration {
+        self.now
+    }
+
+    /// The plant's own time (the last sub-step grid point reached).
+    pub fn plant_time(&self) -> Duration {
+        self.plant_time
+    }
+
+    /// The plant's true state.
+    pub fn truth(&self) -> PlantTruth {
+        self.plant.truth()
+    }
+
+    /// The plant.
+    pub fn plant(&self) -> &Plant {
+        &self.plant
+    }
+
+    /// Module `i`'s firmware (platform wheel order).
+    pub fn firmware(&self, i: usize) -> Option<&ModuleFirmware> {
+        self.firmwares.get(i)
+    }
+
+    /// State of every module.
+    pub fn module_states(&self) -> [ModuleState; MAX_WHEELS] {
+        let mut s = [ModuleState::Boot; MAX_WHEELS];
+        for (o, f) in s.iter_mut().zip(&self.firmwares) {
+            *o = f.state();
+        }
+        s
+    }
+
+    /// Whether the simulated bus connection is off at `t`.
+    pub fn is_bus_off(&self, t: Duration) -> bool {
+        self.schedule.is_bus_off(secs(t))
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> SimStats {
+        let mut s = self.stats;
+        s.injector = *self.injector.stats();
+        for (o, f) in s.modules.iter_mut().zip(&self.firmwares) {
+            *o = *f.stats();
+        }
+        s
+    }
+
+    /// Time of the next sub-step grid point after the plant's time.
+    pub fn next_step_time(&self) -> Duration {
+        self.plant_time + self.substep
+    }
+
+    /// Send time of the earliest queued frame.
+    pub fn next_tx_time(&self) -> Option<Duration> {
+        self.tx.front().map(|(t, _)| *t)
+    }
+
+    /// Frames waiting to be sent.
+    pub fn tx_pending(&self) -> usize {
+        self.tx.len()
+    }
+
+    /// Puts one frame produced by module `wheel` at `send_at` through the schedule.
+    fn transmit(&mut self, send_at: Duration, wheel: usize, frame: CanFrame) {
+        self.stats.frames_generated += 1;
+        let t = secs(send_at);
+        if self.schedule.is_silent(self.nodes[wheel], t) {
+            self.stats.frames_dropped_silent += 1;
+            return;
+        }
+        if self.schedule.is_bus_off(t) {
+            self.stats.frames_dropped_bus_off += 1;
+            return;
+        }
+        let tx = &mut self.tx;
+        let stats = &mut self.stats;
+        self.injector.apply(send_at, &frame, &mut |at, f| {
+            if tx.len() >= TX_QUEUE_CAPACITY {
+                tx.pop_front();
+                stats.tx_overflow += 1;
+            }
+            // Keep the queue ordered by send time (the injector already never reorders, so
+            // this is normally a push at the back).
+            let mut pos = tx.len();
+            while pos > 0 && tx[pos - 1].0 > at {
+                pos -= 1;
+            }
+            tx.insert(pos, (at, f));
+            stats.frames_queued += 1;
+        });
+    }
+
+    /// Runs every firmware's timers at `t`, transmitting what they produce at `t`.
+    fn tick_all(&mut self, t: Duration) {
+        for i in 0..self.firmwares.len() {
+            let mut out = std::mem::take(&mut self.scratch);
+            out.clear();
+            self.firmwares[i].tick(t, &mut |f| out.push(f));
+            for &f in &out {
+                self.transmit(t, i, f);
+            }
+            self.scratch = out;
+        }
+    }
+
+    fn fire_events(&mut self, t: Duration) {
+        let ts = secs(t);
+        while let Some(ev) = self.events.get(self.next_event).copied() {
+            if ev.at > ts {
+                break;
+            }
+            self.next_event += 1;
+            self.stats.events_fired += 1;
+            match ev.kind {
+                EventKind::MotorFault => {
+                    if let Some(fw) = self.firmwares.get_mut(ev.wheel) {
+                        fw.inject_fault(t, FAULT_OVERCURRENT);
+                    }
+                }
+                EventKind::EncoderStuck => self.plant.set_encoder_stuck(ev.wheel, true),
+                EventKind::EncoderJump(a) => self.plant.add_steer_encoder_offset(ev.wheel, a),
+            }
+        }
+    }
+
+    /// Advances the plant on the sub-step grid up to `now` (see the module docs). Times
+    /// earlier than the latest time seen are ignored.
+    ///
+    /// Causality: the motor setpoints used for the sub-step `[t_k, t_k + h)` are those in
+    /// force at `t_k`. Anything that happens strictly inside a sub-step (a SETPOINT frame, a
+    /// fault event, a watchdog trip at a non-grid time) takes effect from the next grid point.
+    pub fn advance_to(&mut self, now: Duration) {
+        if now < self.now {
+            return;
+        }
+        self.now = now;
+        if !self.started {
+            self.started = true;
+            self.fire_events(Duration::ZERO);
+            self.tick_all(Duration::ZERO);
+        }
+        let dt = secs(self.substep);
+        while self.plant_time + self.substep <= now {
+            let sp = match self.latched.take() {
+                Some(sp) => sp,
+                None => self.motor_setpoints(),
+            };
+            self.plant.step(dt, &sp);
+            self.plant_time += self.substep;
+            self.stats.substeps += 1;
+            let t = self.plant_time;
+            self.fire_events(t);
+            self.tick_all(t);
+        }
+        if now > self.plant_time {
+            // Freeze the setpoints for the sub-step in progress before anything at `now`
+            // can change them.
+            if self.latched.is_none() {
+                self.latched = Some(self.motor_setpoints());
+            }
+            self.fire_events(now);
+            self.tick_all(now);
+        }
+    }
+
+    fn motor_setpoints(&self) -> [MotorSetpoint; MAX_WHEELS] {
+        let mut sp = [MotorSetpoint::default(); MAX_WHEELS];
+        for (o, f) in sp.iter_mut().zip(&self.firmwares) {
+            *o = f.motor_setpoint();
+        }
+        sp
+    }
+
+    /// A frame arrived at `now`: advance to `now`, then let every module handle it. Replies
+    /// (FEEDBACK_A/B to a SYNC, STATUS on a state change) are queued with send time
+    /// `now + response_latency`.
+    pub fn on_frame(&mut self, now: Duration, frame: &CanFrame) {
+        self.advance_to(now);
+        let now = self.now;
+        self.stats.frames_received += 1;
+        if self.schedule.is_bus_off(secs(now)) {
+            self.stats.frames_lost_bus_off_rx += 1;
+            return;
+        }
+        let sensors = self.plant.sensors();
+        let send_at = now + self.response_latency;
+        for (i, reading) in sensors.iter().enumerate().take(self.firmwares.len()) {
+            let mut out = std::mem::take(&mut self.scratch);
+            out.clear();
+            self.firmwares[i].handle_frame(now, frame, reading, &mut |f| out.push(f));
+            for &f in &out {
+                self.transmit(send_at, i, f);
+            }
+            self.scratch = out;
+        }
+    }
+
+    /// Hands out every queued frame, in send-time order, with its send time.
+    pub fn drain_tx(&mut self, out: &mut impl FnMut(Duration, CanFrame)) {
+        while let Some((t, f)) = self.tx.pop_front() {
+            out(t, f);
+        }
+    }
+
+    /// Hands out the queued frames whose send time is ≤ `now`, in order.
+    pub fn drain_due(&mut self, now: Duration, out: &mut impl FnMut(Duration, CanFrame)) {
+        while let Some(&(t, f)) = self.tx.front() {
+            if t > now {
+                break;
+            }
+            self.tx.pop_front();
+            out(t, f);
+        }
+    }
+
+    /// Runs this simulator against `bus` in real time until `stop` is set (see
+    /// [`run_realtime`]).
+    pub fn run_realtime(
+        &mut self,
+        bus: &mut dyn CanBus,
+        stop: &AtomicBool,
+    ) -> Result<RealtimeSummary, SimError> {
+        run_realtime(self, bus, stop, None)
+    }
+
+    /// Lockstep helper for one instant: feed every frame `bus` has now (`try_recv`, using the
+    /// bus timestamps, which must be simulator time, e.g. a virtual-clock `VirtualBus` whose
+    /// time is the simulator's), advance to `now`, and send the frames due by `now`.
+    /// Returns the number of frames sent; retryable send errors drop the frame (counted by
+    /// the caller through the bus), others are returned.
+    pub fn pump(&mut self, now: Duration, bus: &mut dyn CanBus) -> Result<usize, SimError> {
+        loop {
+            match bus.try_recv() {
+                Ok(Some(tf)) => self.on_frame(tf.timestamp.max(self.now), &tf.frame),
+                Ok(None) => break,
+                Err(e) if e.is_retryable() => break,
+                Err(e) => return Err(e.into()),
+            }
+        }
+        self.advance_to(now);
+        let mut sent = 0;
+        let mut err = None;
+        self.drain_due(now, &mut |_, f| match bus.send(&f) {
+            Ok(()) => sent += 1,
+            Err(e) if e.is_retryable() => {}
+            Err(e) => err = Some(e),
+        });
+        match err {
+            Some(e) => Err(e.into()),
+            None => Ok(sent),
+        }
+    }
+}
+
+/// What a real-time run did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RealtimeSummary {
+    /// Wall time run.
+    pub elapsed: Duration,
+    /// Frames received from the bus.
+    pub frames_in: u64,
+    /// Frames sent on the bus.
+    pub frames_out: u64,
+    /// Sends that failed with a retryable error (frame dropped).
+    pub send_errors: u64,
+    /// Receives that failed with a retryable error (error frames …).
+    pub recv_errors: u64,
+    /// Largest delay between a frame's due time and its actual send.
+    pub max_send_lateness: Duration,
+}
+
+/// Runs `sim` against a real (or wall-clock virtual) bus in real time until `stop` is set or
+/// `duration` has elapsed: receive until the next deadline (next sub-step or next due frame),
+/// hand frames to the simulator stamped with the elapsed wall time, advance, send what is due.
+/// Non-retryable bus errors end the run with [`SimError::Bus`].
+pub fn run_realtime(
+    sim: &mut Simulator,
+    bus: &mut dyn CanBus,
+    stop: &AtomicBool,
+    duration: Option<Duration>,
+) -> Result<RealtimeSummary, SimError> {
+    let epoch = Instant::now() - sim.now();
+    let start = sim.now();
+    let mut summary = RealtimeSummary::default();
+    loop {
+        let now = epoch.elapsed();
+        summary.elapsed = now - start;
+        if stop.load(Ordering::Relaxed) || duration.is_some_and(|d| now - start >= d) {
+            break;
+        }
+        let mut next = sim.next_step_time();
+        if let Some(t) = sim.next_tx_time() {
+            next = next.min(t);
+        }
+        if let Some(d) = duration {
+            next = next.min(start + d);
+        }
+        match bus.recv_until(epoch + next) {
+            Ok(Some(tf)) => {
+                summary.frames_in += 1;
+                sim.on_frame(epoch.elapsed(), &tf.frame);
+            }
+            Ok(None) => {}
+            Err(e) if e.is_retryable() => summary.recv_errors += 1,
+            Err(e) => return Err(e.into()),
+        }
+        let now = epoch.elapsed();
+        sim.advance_to(now);
+        let mut err = None;
+        sim.drain_due(now, &mut |at, f| {
+            summary.max_send_lateness = summary.max_send_lateness.max(now.saturating_sub(at));
+            match bus.send(&f) {
+                Ok(()) => summary.frames_out += 1,
+                Err(e) if e.is_retryable() => summary.send_errors += 1,
+                Err(e) => err = Some(e),
+            }
+        });
+        if let Some(e) = err {
+            return Err(e.into());
+        }
+    }
+    Ok(summary)
+}
+
+/// Runs [`run_realtime`] on its own thread (for in-process use, e.g. `rollbase demo` with a
+/// wall-clock `VirtualBus` node). Set `stop` to end it; the thread returns the simulator
+/// (for its truth and statistics) and the run's result.
+pub fn spawn_realtime(
+    mut sim: Simulator,
+    mut bus: Box<dyn CanBus>,
+    stop: Arc<AtomicBool>,
+    duration: Option<Duration>,
+) -> std::thread::JoinHandle<(Simulator, Result<RealtimeSummary, SimError>)> {
+    std::thread::spawn(move || {
+        let r = run_realtime(&mut sim, bus.as_mut(), &stop, duration);
+        (sim, r)
+    })
+}
