@@ -698,6 +698,15 @@ fn run_bus(a: RunArgs) -> Result<i32, CliError> {
 fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
     let mut rx = rollbase_driver::rx::Receiver::new();
     let mut stats = candump::MonitorStats::default();
+    // A closed stdout (`rollbase monitor … | head`) ends the monitor quietly.
+    let mut out = std::io::stdout().lock();
+    macro_rules! emit {
+        ($($arg:tt)*) => {
+            if writeln!(out, $($arg)*).is_err() {
+                return Ok(0);
+            }
+        };
+    }
     match (&a.bus, &a.candump) {
         (Some(iface), None) => {
             let mut canbus = bus::open(iface)?;
@@ -750,7 +759,7 @@ fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
         }
     }
     if a.summary {
-        println!("{stats}");
+        emit!("{stats}");
     }
     Ok(0)
 }

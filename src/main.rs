@@ -8,6 +8,12 @@ mod app;
 use clap::Parser;
 
 fn main() {
+    // Behave like a Unix filter: when stdout is closed early (`rollbase dbc | head`), end
+    // quietly instead of panicking on the failed write.
+    // SAFETY: restoring the default disposition of SIGPIPE at start-up, before any thread exists.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let cli = app::Cli::parse();
     match app::run(cli) {
         Ok(code) => std::process::exit(code),

@@ -114,7 +114,7 @@ pub struct TimingRecord {
     pub period_us: f64,
     /// Lateness of the wake-up against the absolute deadline (µs).
     pub wakeup_latency_us: f64,
-    /// Time from wake-up to setpoints sent (µs); 0 in lockstep.
+    /// Time from the end of feedback collection to setpoints sent (µs); 0 in lockstep.
     pub compute_us: f64,
     /// Age of the oldest wheel's newest feedback at the controller step (µs).
     pub feedback_age_us: f64,

@@ -1045,7 +1045,8 @@ pub fn run_realtime(
                 }
             }
         }
-        let tw = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
+        let collected = ts_ns(&monotonic_now());
+        let tw = (collected - start) as f64 * 1e-9;
         let m = core.finish_cycle(tw, &mut out);
         for f in out.iter().take(m) {
             if let Err(e) = bus.send(f) {
@@ -1067,7 +1068,9 @@ pub fn run_realtime(
             rec.timing.period_us =
                 prev_wake.map_or(period_ns as f64 / 1e3, |p| (wake - p) as f64 / 1e3);
             rec.timing.wakeup_latency_us = (wake - deadline) as f64 / 1e3;
-            rec.timing.compute_us = (done_ns - wake) as f64 / 1e3;
+            // Compute time: from the end of feedback collection to the last setpoint sent
+            // (the collection window itself is waiting, not computing).
+            rec.timing.compute_us = (done_ns - collected) as f64 / 1e3;
             rec.timing.deadline_miss = miss;
             let _ = t;
         }
