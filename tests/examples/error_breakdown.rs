@@ -23,11 +23,15 @@ fn main() {
     let (mut worst_track, mut worst_odo, mut worst_leg) = (0.0f64, 0.0f64, 0.0f64);
     println!("  cycle  state      track(mm)  odo(mm)  odo-heading(mrad)  leg(mm)");
     for r in &out.records {
-        let Some((truth, legs)) = r.truth else { continue };
+        let Some((truth, legs)) = r.truth else {
+            continue;
+        };
         let z = &r.reference.z;
         let track = (z[0] - r.pose.x).hypot(z[1] - r.pose.y);
         let odo = (truth.x - r.pose.x).hypot(truth.y - r.pose.y);
-        let leg = (0..r.n).map(|i| (z[3 + i] - legs[i]).abs()).fold(0.0, f64::max);
+        let leg = (0..r.n)
+            .map(|i| (z[3 + i] - legs[i]).abs())
+            .fold(0.0, f64::max);
         worst_track = worst_track.max(track);
         worst_odo = worst_odo.max(odo);
         worst_leg = worst_leg.max(leg);
