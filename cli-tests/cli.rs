@@ -9,7 +9,7 @@ fn rollbase() -> Command {
 
 #[test]
 fn ctrl_c_during_a_real_time_demo_is_a_controlled_stop_then_exit() {
-    let mut child = rollbase()
+    let child = rollbase()
         .args(["demo", "--json"])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
