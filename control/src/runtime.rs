@@ -115,6 +115,70 @@ pub enum RuntimeError {
     /// The bus failed in a way the run cannot continue from.
     #[error("bus error: {0}")]
     Bus(#[from] BusError),
+    /// The trajectory needs more than a limit of the platform allows.
+    #[error("infeasible trajectory: at t = {t:.3} s wheel {} needs {value:.3} but `limits.{field}` = {limit:.3}; slow the trajectory down or raise the limit in the platform file", wheel + 1)]
+    Infeasible {
+        /// The limit's field name in the platform file.
+        field: &'static str,
+        /// Wheel index (0-based).
+        wheel: usize,
+        /// Time of the first violating sample (s).
+        t: f64,
+        /// The value the trajectory needs.
+        value: f64,
+        /// The limit.
+        limit: f64,
+    },
+}
+
+/// Checks, before anything starts, that the reference stays inside the platform's wheel
+/// speed and leg speed limits (sampled every control period over the whole trajectory):
+/// the wheel's rolling speed |u_i| / r (seed 000 eq. 18, [`crate::model::wheel_velocity_body`])
+/// against `limits.wheel_speed` and |λ̇_i*| against `limits.leg_speed`. Steering rates are
+/// not checked here: near rest they are unbounded in the reference (singularity A) and the
+/// controllers limit them.
+pub fn check_feasible(p: &Platform, traj: &dyn Trajectory) -> Result<(), RuntimeError> {
+    let n = p.n().min(MAX_WHEELS).min(traj.n_legs());
+    let dt = p.dt();
+    let d = traj.duration();
+    let steps = if d.is_finite() && d > 0.0 {
+        (d / dt).ceil().min(1e7) as u64
+    } else {
+        0
+    };
+    for k in 0..=steps {
+        let t = (k as f64 * dt).min(d.max(0.0));
+        let r = traj.sample(t);
+        let tw = crate::types::Twist {
+            vx: r.dz[0],
+            vy: r.dz[1],
+            omega: r.dz[2],
+        };
+        for i in 0..n {
+            let u = crate::model::wheel_velocity_body(p, i, r.z[2], r.z[3 + i], &tw, r.dz[3 + i]);
+            let w = u[0].hypot(u[1]) / p.wheel_radius;
+            if w.is_nan() || w > p.limits.wheel_speed {
+                return Err(RuntimeError::Infeasible {
+                    field: "wheel_speed",
+                    wheel: i,
+                    t,
+                    value: w,
+                    limit: p.limits.wheel_speed,
+                });
+            }
+            let l = r.dz[3 + i].abs();
+            if l.is_nan() || l > p.limits.leg_speed {
+                return Err(RuntimeError::Infeasible {
+                    field: "leg_speed",
+                    wheel: i,
+                    t,
+                    value: l,
+                    limit: p.limits.leg_speed,
+                });
+            }
+        }
+    }
+    Ok(())
 }
 
 #[derive(Clone, Copy, Debug, Default)]
@@ -122,6 +186,15 @@ struct WheelFeedback {
     a: Option<FeedbackA>,
     b: Option<FeedbackB>,
     a_cycle: Option<u64>,
+    /// Rolling counter of `a`: one step per SYNC the module answered.
+    a_counter: u8,
+    /// Whether `a` arrived after the SYNC of the cycle it arrived in (not a late answer).
+    a_on_time: bool,
+    /// The FEEDBACK_A before `a`, with its rolling counter, arrival cycle and punctuality:
+    /// for the encoder-jump check.
+    prev_a: Option<(FeedbackA, u8, u64, bool)>,
+    /// `a` arrived since the last encoder-jump check.
+    a_fresh: bool,
     b_cycle: Option<u64>,
     a_time: f64,
     b_time: f64,
@@ -129,8 +202,12 @@ struct WheelFeedback {
     fault_code: u8,
 }
 
+/// Cycles after [`CycleCore::arm`] whose SETPOINTs carry `fault_reset`.
+pub const FAULT_RESET_CYCLES: u32 = 3;
+
 /// The cycle minus IO and clocks.
 pub struct CycleCore {
+    fault_reset_cycles: u32,
     platform: Platform,
     cfg: RuntimeConfig,
     n: usize,
@@ -153,6 +230,7 @@ pub struct CycleCore {
     bus_error: bool,
     done_cycles: u32,
     controller_moved: bool,
+    sync_time: f64,
     rejected_this_cycle: u32,
     wheel_xy: [[f64; 2]; MAX_WHEELS],
 }
@@ -186,6 +264,7 @@ impl CycleCore {
                 platform: n,
             });
         }
+        check_feasible(&platform, trajectory.as_ref())?;
         let mut nodes = [0u8; MAX_WHEELS];
         let mut node_to_wheel = [None; 16];
         for (i, w) in platform.wheels.iter().enumerate() {
@@ -207,6 +286,7 @@ impl CycleCore {
         legs[..n].copy_from_slice(&r0.z.as_slice()[3..3 + n]);
         let wheel_xy = wheel_positions(&platform, &legs[..n]);
         Ok(Self {
+            fault_reset_cycles: 0,
             n,
             nodes,
             node_to_wheel,
@@ -227,6 +307,7 @@ impl CycleCore {
             bus_error: false,
             done_cycles: 0,
             controller_moved: false,
+            sync_time: 0.0,
             rejected_this_cycle: 0,
             wheel_xy,
             platform,
@@ -265,7 +346,25 @@ impl CycleCore {
     }
 
     /// Arms the platform (Idle/Stopped/Fault → Aligning). Re-arming after a fault clears it.
+    ///
+    /// Re-arming is the operator's "reconnect": the SETPOINTs of the next
+    /// [`FAULT_RESET_CYCLES`] cycles carry `fault_reset`, so modules whose setpoint watchdog
+    /// latched while the bus was gone (or that latched any other fault) go back to Ready,
+    /// and the module states cached from earlier STATUS frames are forgotten: only a STATUS
+    /// sent after the re-arm can fault the platform again. A fault that persists is reported
+    /// again by the module and faults the platform again.
     pub fn arm(&mut self) -> bool {
+        if !matches!(
+            self.sup.state(),
+            SupervisorState::Idle | SupervisorState::Stopped | SupervisorState::Fault
+        ) {
+            return false;
+        }
+        self.fault_reset_cycles = FAULT_RESET_CYCLES + 1;
+        for fb in self.fb.iter_mut() {
+            fb.state = None;
+            fb.fault_code = 0;
+        }
         self.stop_requested = false;
         self.bus_error = false;
         self.done_cycles = 0;
@@ -310,6 +409,9 @@ impl CycleCore {
     }
 
     fn push_tx(&mut self, t: f64, f: &CanFrame) {
+        if f.id() == 0x080 {
+            self.sync_time = t;
+        }
         let mut data = [0u8; 8];
         data[..f.len()].copy_from_slice(f.data());
         self.record.push_tx(FrameRecord {
@@ -351,6 +453,12 @@ impl CycleCore {
         let fb = &mut self.fb[w];
         match msg.payload {
             Payload::FeedbackA(a) => {
+                if let (Some(old), Some(c)) = (fb.a, fb.a_cycle) {
+                    fb.prev_a = Some((old, fb.a_counter, c, fb.a_on_time));
+                }
+                fb.a_counter = msg.counter;
+                fb.a_on_time = t >= self.sync_time;
+                fb.a_fresh = true;
                 fb.a = Some(a);
                 fb.a_cycle = Some(self.cycle);
                 fb.a_time = t;
@@ -368,12 +476,13 @@ impl CycleCore {
         }
     }
 
-    fn measurement(&self) -> (Measurement, [u32; MAX_WHEELS], f64) {
+    fn measurement(&self) -> (Measurement, [u32; MAX_WHEELS], [u32; MAX_WHEELS], f64) {
         let mut m = Measurement {
             n: self.n,
             ..Default::default()
         };
         let mut age = [0u32; MAX_WHEELS];
+        let mut alive = [0u32; MAX_WHEELS];
         let mut oldest = f64::NEG_INFINITY;
         #[allow(clippy::needless_range_loop)] // parallel per-wheel arrays
         for i in 0..self.n {
@@ -391,13 +500,17 @@ impl CycleCore {
             }
             let ca = fb.a_cycle.map_or(self.cycle + 1, |c| self.cycle - c);
             let cb = fb.b_cycle.map_or(self.cycle + 1, |c| self.cycle - c);
+            // Data age: the older of the two feedback streams (what the controller uses).
             age[i] = ca.max(cb).min(u32::MAX as u64) as u32;
+            // Module age: the newer of the two; a module is silent only when neither
+            // FEEDBACK_A nor FEEDBACK_B arrived (random loss of one frame is not silence).
+            alive[i] = ca.min(cb).min(u32::MAX as u64) as u32;
             let newest = fb.a_time.min(fb.b_time);
             if oldest == f64::NEG_INFINITY || newest < oldest {
                 oldest = newest;
             }
         }
-        (m, age, oldest)
+        (m, age, alive, oldest)
     }
 
     fn reference_time(&self) -> f64 {
@@ -412,7 +525,7 @@ impl CycleCore {
     /// [`CycleCore::record`].
     pub fn finish_cycle(&mut self, t: f64, out: &mut [CanFrame; MAX_WHEELS]) -> usize {
         let dt = self.platform.dt();
-        let (meas, age, oldest_fb) = self.measurement();
+        let (meas, age, alive, oldest_fb) = self.measurement();
         for (i, w) in meas.wheels[..self.n].iter().enumerate() {
             self.wheel_xy[i] = {
                 let a = self.platform.wheels[i].alpha;
@@ -447,9 +560,49 @@ impl CycleCore {
         };
 
         let (align_cmd, align_err) = alignment_command(&self.platform, &meas, &nominal);
+        // Alignment and the start check need every module's feedback at least once.
+        let reported = self.fb[..self.n]
+            .iter()
+            .all(|f| f.a.is_some() && f.b.is_some());
+        let start_legs = if reported {
+            let r0 = self.trajectory.sample(0.0);
+            let mut worst = (0usize, meas.wheels[0].leg, r0.z[3]);
+            for i in 0..self.n {
+                let (m, e) = (meas.wheels[i].leg, r0.z[3 + i]);
+                if (m - e).abs() > (worst.1 - worst.2).abs() || !(m - e).is_finite() {
+                    worst = (i, m, e);
+                }
+            }
+            Some(worst)
+        } else {
+            None
+        };
+        // Encoder jump: two readings sampled one SYNC apart must differ in steering angle by
+        // what the trapezoid of their measured steering rates predicts. The spacing is only
+        // certain when the module's counter advanced by one (no lost answer), the two arrived
+        // in consecutive cycles (no lost SYNC, which the counter cannot show: a module that
+        // saw no SYNC sends nothing) and both arrived after their own cycle's SYNC (neither is
+        // a late answer to the SYNC before). Other pairs are not checked.
+        let mut steer_jump = [0.0; MAX_WHEELS];
+        for (i, j) in steer_jump.iter_mut().enumerate().take(self.n) {
+            let fb = &mut self.fb[i];
+            if let (true, Some(a), Some(c), Some((pa, pk, pc, p_on_time))) =
+                (fb.a_fresh, fb.a, fb.a_cycle, fb.prev_a)
+            {
+                let k = fb.a_counter.wrapping_sub(pk) & 0x0F;
+                if k == 1 && pc + 1 == c && p_on_time && fb.a_on_time {
+                    let predicted = pa.steer_angle + 0.5 * (pa.steer_rate + a.steer_rate) * dt;
+                    *j = crate::angle::diff(a.steer_angle, predicted);
+                }
+            }
+            fb.a_fresh = false;
+        }
         let mut sup_in = SupervisorInput {
-            feedback_age: age,
-            alignment_error: align_err,
+            steer_jump,
+            feedback_age: alive,
+            data_age: age,
+            alignment_error: if reported { align_err } else { f64::INFINITY },
+            start_legs,
             bus_error: self.bus_error,
             slip_residual: odo.residual,
             stop_requested: self.stop_requested,
@@ -509,6 +662,13 @@ impl CycleCore {
             };
             track_cmd = self.controller.step(&self.platform, &input).command;
         }
+        // The last cycle of a finished run disables the drives (enable = 0), so the modules go
+        // back to Ready instead of tripping their setpoint watchdog when the controller exits.
+        let settling = matches!(
+            self.sup.state(),
+            SupervisorState::Stopped | SupervisorState::Fault
+        ) || (self.sup.state() == SupervisorState::Idle && self.stop_requested);
+        let last_cycle = settling && self.done_cycles + 1 >= self.cfg.linger_cycles;
         let (cmd, enable, brake, mode_name) = match mode {
             Mode::Disabled => (Command::zero(self.n), false, false, "disabled"),
             Mode::Align => (align_cmd, true, false, "align"),
@@ -532,8 +692,17 @@ impl CycleCore {
             ),
             Mode::Hold => (Command::zero(self.n), true, true, "hold"),
         };
+        let at_rest_now = command_at_rest(&cmd, self.sup.config().rest_speed);
+        let (enable, mode_name) = if last_cycle && at_rest_now {
+            (false, "disable")
+        } else {
+            (enable, mode_name)
+        };
 
         let mut k = 0;
+        // A re-arm asks the modules to clear latched faults (e.g. their setpoint watchdog
+        // after the bus was gone) in the SETPOINTs of the next few cycles.
+        self.fault_reset_cycles = self.fault_reset_cycles.saturating_sub(1);
         for i in 0..self.n {
             let c = cmd.wheels[i];
             let sp = Setpoint {
@@ -542,7 +711,7 @@ impl CycleCore {
                 flags: SetpointFlags {
                     enable,
                     brake,
-                    fault_reset: false,
+                    fault_reset: self.fault_reset_cycles > 0,
                 },
             };
             let msg = Message {

@@ -100,6 +100,28 @@ pub enum FaultReason {
     },
     /// The controller hit singularity A or produced non-finite output.
     ControllerSingular,
+    /// A steering encoder's angle changed by more than its own measured steering rate can
+    /// explain between two consecutive readings (a jump: slipped encoder, bad reading).
+    EncoderJump {
+        /// Wheel index.
+        wheel: usize,
+        /// CAN node.
+        node: u8,
+        /// Unexplained angle change (rad).
+        jump: f64,
+    },
+    /// The platform is not where the trajectory starts: a leg differs from the trajectory's
+    /// initial extension by more than the tolerance, so tracking is refused.
+    StartMismatch {
+        /// Wheel index.
+        wheel: usize,
+        /// CAN node.
+        node: u8,
+        /// Measured leg extension (m).
+        measured: f64,
+        /// The trajectory's initial leg extension (m).
+        expected: f64,
+    },
 }
 
 /// Which limit a [`FaultReason::LimitBreach`] refers to.
@@ -152,6 +174,22 @@ impl std::fmt::Display for FaultReason {
                 "alignment timeout: steering error still {:.2}°",
                 error.to_degrees()
             ),
+            Self::EncoderJump { wheel, node, jump } => write!(
+                f,
+                "encoder jump: wheel {} (node {node}) steering angle changed {:.2}° more than its measured steering rate explains; check the steering encoder",
+                wheel + 1,
+                jump.to_degrees()
+            ),
+            Self::StartMismatch {
+                wheel,
+                node,
+                measured,
+                expected,
+            } => write!(
+                f,
+                "start mismatch: wheel {} (node {node}) leg at {measured:.4} m but the trajectory starts at {expected:.4} m; move the legs or start the trajectory from the current configuration",
+                wheel + 1
+            ),
             Self::ControllerSingular => {
                 write!(
                     f,
@@ -165,8 +203,14 @@ impl std::fmt::Display for FaultReason {
 /// Thresholds of the supervisor.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SupervisorConfig {
-    /// Feedback older than this many cycles is a fault (the issue: "more than 3 cycles").
+    /// A module that sent neither FEEDBACK_A nor FEEDBACK_B for more than this many cycles
+    /// is silent: a fault (the issue: "more than 3 cycles").
     pub stale_cycles: u32,
+    /// Either feedback stream of a module older than this many cycles is a fault even while
+    /// the other stream still arrives: bounds the age of any value the controller uses
+    /// (8 cycles = 32 ms at 250 Hz). Random loss of single frames (issue 8: 5 % loss) must
+    /// not stop the platform, a module whose data is this old must.
+    pub stale_data_cycles: u32,
     /// Alignment is complete when every wheel is within this angle of its target (rad).
     pub align_tolerance: f64,
     /// Alignment must complete within this many cycles.
@@ -179,18 +223,29 @@ pub struct SupervisorConfig {
     pub slip_cycles: u32,
     /// Wheel speeds below this (rad/s) count as at rest.
     pub rest_speed: f64,
+    /// Largest accepted difference between a measured leg and the trajectory's initial leg
+    /// extension before tracking starts (m).
+    pub start_leg_tolerance: f64,
+    /// Largest steering-angle change between consecutive readings that the measured steering
+    /// rates do not explain (rad). The trapezoid of the two rates predicts the change to within
+    /// ½·φ̈·dt² (0.45 mrad at the 56 rad/s² torque limit) plus quantization and noise (≈0.5
+    /// mrad); 0.02 rad leaves a margin of 20 and catches any real encoder jump.
+    pub steer_jump_threshold: f64,
 }
 
 impl Default for SupervisorConfig {
     fn default() -> Self {
         Self {
             stale_cycles: 3,
+            stale_data_cycles: 8,
             align_tolerance: 0.5f64.to_radians(),
             align_timeout_cycles: 2500,
             limit_margin: 0.2,
             slip_threshold: 0.05,
             slip_cycles: 25,
             rest_speed: 0.02,
+            start_leg_tolerance: 0.005,
+            steer_jump_threshold: 0.02,
         }
     }
 }
@@ -198,16 +253,26 @@ impl Default for SupervisorConfig {
 /// What the supervisor sees each cycle.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct SupervisorInput {
-    /// Cycles since each wheel's last valid feedback (0 = this cycle).
+    /// Cycles since each wheel's last valid feedback of any kind (0 = this cycle).
     pub feedback_age: [u32; MAX_WHEELS],
+    /// Cycles since each wheel's older feedback stream was last received (the age of the
+    /// oldest value the controller uses for that wheel).
+    pub data_age: [u32; MAX_WHEELS],
     /// Fault code per wheel from its latest STATUS (`None` = no fault).
     pub module_fault: [Option<u8>; MAX_WHEELS],
     /// Measured wheel spin rates (rad/s).
     pub wheel_speed: [f64; MAX_WHEELS],
     /// Measured steering rates (rad/s).
     pub steer_rate: [f64; MAX_WHEELS],
-    /// Largest steering error to the alignment targets (rad), meaningful while aligning.
+    /// Largest steering error to the alignment targets (rad), meaningful while aligning;
+    /// infinite until every module has reported.
     pub alignment_error: f64,
+    /// Per wheel, the steering-angle change since the previous reading that the measured
+    /// steering rates do not explain (rad); 0 when not checkable (no consecutive readings).
+    pub steer_jump: [f64; MAX_WHEELS],
+    /// The wheel whose leg differs most from the trajectory's initial extension, as
+    /// (wheel, measured, expected); `None` until every module has reported.
+    pub start_legs: Option<(usize, f64, f64)>,
     /// The reference trajectory is complete and the controller reports it has finished.
     pub trajectory_done: bool,
     /// The controller reported singularity A or non-finite output this cycle.
@@ -329,6 +394,13 @@ impl Supervisor {
                     cycles: input.feedback_age[i],
                 });
             }
+            if input.data_age[i] > self.cfg.stale_data_cycles {
+                return Some(FaultReason::StaleFeedback {
+                    wheel: i,
+                    node: self.nodes[i],
+                    cycles: input.data_age[i],
+                });
+            }
         }
         for i in 0..self.n {
             if let Some(code) = input.module_fault[i] {
@@ -336,6 +408,16 @@ impl Supervisor {
                     wheel: i,
                     node: self.nodes[i],
                     code,
+                });
+            }
+        }
+        for i in 0..self.n {
+            let j = input.steer_jump[i];
+            if j.abs() > self.cfg.steer_jump_threshold {
+                return Some(FaultReason::EncoderJump {
+                    wheel: i,
+                    node: self.nodes[i],
+                    jump: j,
                 });
             }
         }
@@ -400,7 +482,19 @@ impl Supervisor {
                     self.enter(SupervisorState::Stopping);
                     return Mode::Decelerate;
                 }
-                if input.alignment_error <= self.cfg.align_tolerance {
+                if let Some((wheel, measured, expected)) = input.start_legs {
+                    let dev = (measured - expected).abs();
+                    if dev.is_nan() || dev > self.cfg.start_leg_tolerance {
+                        self.fault(FaultReason::StartMismatch {
+                            wheel,
+                            node: self.nodes[wheel.min(MAX_WHEELS - 1)],
+                            measured,
+                            expected,
+                        });
+                        return Mode::Decelerate;
+                    }
+                }
+                if input.alignment_error <= self.cfg.align_tolerance && input.start_legs.is_some() {
                     self.enter(SupervisorState::Tracking);
                     Mode::Track
                 } else if self.cycles_in_state > self.cfg.align_timeout_cycles {
@@ -488,7 +582,30 @@ mod tests {
     use super::*;
 
     fn healthy() -> SupervisorInput {
-        SupervisorInput::default()
+        SupervisorInput {
+            start_legs: Some((0, 0.37, 0.37)),
+            ..SupervisorInput::default()
+        }
+    }
+
+    #[test]
+    fn refuses_to_track_from_the_wrong_start_and_waits_for_every_module() {
+        let p = Platform::justin();
+        let mut s = Supervisor::new(&p, SupervisorConfig::default());
+        s.arm();
+        let mut inp = healthy();
+        inp.start_legs = None; // a module has not reported yet
+        assert_eq!(s.step(&p, &inp, true), Mode::Align);
+        assert_eq!(s.state(), SupervisorState::Aligning);
+        inp.start_legs = Some((2, 0.465, 0.37));
+        assert_eq!(s.step(&p, &inp, true), Mode::Decelerate);
+        match s.reason() {
+            Some(FaultReason::StartMismatch { wheel, node, .. }) => {
+                assert_eq!((wheel, node), (2, 3))
+            }
+            r => panic!("unexpected {r:?}"),
+        }
+        assert!(s.reason().unwrap().to_string().contains("0.4650 m"));
     }
 
     #[test]
@@ -518,6 +635,23 @@ mod tests {
         s.step(&p, &healthy(), true);
         assert_eq!(s.state(), SupervisorState::Tracking);
         (p, s)
+    }
+
+    #[test]
+    fn one_stale_stream_is_tolerated_up_to_the_data_age_bound() {
+        let (p, mut s) = tracking();
+        let mut inp = healthy();
+        // FEEDBACK_B of wheel 2 lost for 8 cycles while FEEDBACK_A keeps arriving.
+        inp.data_age[2] = 8;
+        assert_eq!(s.step(&p, &inp, false), Mode::Track);
+        inp.data_age[2] = 9;
+        assert_eq!(s.step(&p, &inp, false), Mode::Decelerate);
+        match s.reason() {
+            Some(FaultReason::StaleFeedback { wheel, cycles, .. }) => {
+                assert_eq!((wheel, cycles), (2, 9));
+            }
+            r => panic!("unexpected reason {r:?}"),
+        }
     }
 
     #[test]
@@ -587,6 +721,23 @@ mod tests {
                 ..
             })
         ));
+    }
+
+    #[test]
+    fn an_unexplained_steering_angle_step_is_an_encoder_fault() {
+        let (p, mut s) = tracking();
+        let mut inp = healthy();
+        inp.steer_jump[3] = 0.015;
+        assert_eq!(s.step(&p, &inp, false), Mode::Track, "below the threshold");
+        inp.steer_jump[3] = -0.3;
+        assert_eq!(s.step(&p, &inp, false), Mode::Decelerate);
+        match s.reason() {
+            Some(FaultReason::EncoderJump { wheel, node, jump }) => {
+                assert_eq!((wheel, node), (3, 4));
+                assert!((jump + 0.3).abs() < 1e-12);
+            }
+            r => panic!("unexpected {r:?}"),
+        }
     }
 
     #[test]

@@ -2,6 +2,8 @@
 //! path (encode → virtual bus → simulated modules → virtual bus → decode) on virtual time.
 #![deny(missing_docs)]
 
+pub mod campaign;
+
 use rollbase_control::record::CycleRecord;
 use rollbase_control::runtime::{
     run_lockstep, ControllerKind, CycleCore, LockstepReport, RunSummary, RuntimeConfig,
@@ -10,7 +12,7 @@ use rollbase_control::runtime::{
 use rollbase_control::scenario::{self, Scenario};
 use rollbase_control::Platform;
 use rollbase_driver::fault::FaultModel;
-use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};
+use rollbase_vcan_sim::{FaultSchedule, PlantConfig, SimConfig, Simulator};
 
 /// What to run.
 #[derive(Clone, Debug)]
@@ -31,6 +33,9 @@ pub struct RunOptions {
     pub stop_at_cycle: Option<u64>,
     /// Extra cycles beyond the trajectory's duration before giving up.
     pub slack_s: f64,
+    /// Start the simulated platform at the trajectory's initial pose and legs (true) or at
+    /// the simulator's nominal configuration (false: legs at their nominal extension).
+    pub start_at_reference: bool,
 }
 
 impl RunOptions {
@@ -45,6 +50,7 @@ impl RunOptions {
             bus_faults: FaultModel::none(),
             stop_at_cycle: None,
             slack_s: 15.0,
+            start_at_reference: true,
         }
     }
 
@@ -75,13 +81,25 @@ pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]
     let r0 = traj.sample(0.0);
     let mut core =
         CycleCore::new(platform.clone(), traj, opts.runtime.clone()).expect("valid setup");
-    let mut sim = Simulator::new(
-        &platform,
-        opts.plant.clone(),
-        opts.faults.clone(),
-        &r0,
-        opts.seed,
-    )
+    let mut sim = if opts.start_at_reference {
+        Simulator::new(
+            &platform,
+            opts.plant.clone(),
+            opts.faults.clone(),
+            &r0,
+            opts.seed,
+        )
+    } else {
+        Simulator::with_config(
+            &platform,
+            SimConfig {
+                plant: opts.plant.clone(),
+                faults: opts.faults.clone(),
+                seed: opts.seed,
+                ..SimConfig::default()
+            },
+        )
+    }
     .expect("valid simulator setup");
     let mut bus = VirtualLockstepBus::new(opts.bus_faults, opts.seed ^ 0x5EED);
     let max_cycles = ((duration + opts.slack_s) * platform.cycle_hz) as u64;

@@ -43,6 +43,53 @@ fn assert_tracks_seed000(controller: ControllerKind) {
     let to_goal = (pose.x - 4.5).hypot(pose.y - 4.5);
     assert!(to_goal < 0.005, "final distance to the goal {to_goal} m");
     assert!((pose.theta - std::f64::consts::TAU).abs() < 0.5f64.to_radians());
+    // The run ends by disabling the drives, so no module trips its watchdog afterwards.
+    assert_eq!(last.mode, "disable");
+    let setpoints: Vec<_> = last.tx[..last.n_tx]
+        .iter()
+        .filter(|f| (0x201..=0x20F).contains(&f.id))
+        .collect();
+    assert_eq!(setpoints.len(), 4);
+    for f in setpoints {
+        let frame = rollbase_driver::frame::CanFrame::new(f.id, &f.data[..f.len as usize]).unwrap();
+        match rollbase_driver::decode(&frame).unwrap().payload {
+            rollbase_driver::Payload::Setpoint(sp) => {
+                assert!(!sp.flags.enable, "drives disabled at the end");
+                assert_eq!(sp.wheel_speed, 0.0);
+            }
+            p => panic!("unexpected {p:?}"),
+        }
+    }
+}
+
+#[test]
+fn a_platform_away_from_the_trajectory_start_is_refused_before_it_moves() {
+    let mut opts = RunOptions::new(Scenario::Seed000);
+    // The simulated legs sit at their nominal 0.465 m; seed 000 starts at 0.37 m.
+    opts.start_at_reference = false;
+    let out = run(&opts);
+    assert_eq!(out.summary.final_state, "fault");
+    let fault = out
+        .records
+        .iter()
+        .find(|r| r.state == SupervisorState::Fault)
+        .expect("faulted");
+    match fault.reason {
+        Some(rollbase_control::supervisor::FaultReason::StartMismatch {
+            measured,
+            expected,
+            ..
+        }) => {
+            assert!((measured - 0.465).abs() < 1e-3 && (expected - 0.37).abs() < 1e-9);
+        }
+        r => panic!("unexpected {r:?}"),
+    }
+    // Refused within the first cycles, and no wheel ever rolled.
+    assert!(fault.cycle < 10, "refused at cycle {}", fault.cycle);
+    assert!(out
+        .records
+        .iter()
+        .all(|r| r.command.wheels[..r.n].iter().all(|w| w.wheel_speed == 0.0)));
 }
 
 #[test]
