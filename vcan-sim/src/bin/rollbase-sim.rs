@@ -46,6 +46,11 @@ struct Cli {
     /// Stop after this many seconds (default: run until Ctrl-C).
     #[arg(long, value_name = "S")]
     duration: Option<f64>,
+    /// Where the platform starts: `nominal` (legs at their nominal extension, wheels straight)
+    /// or `scenario:NAME` (the scenario's initial pose and legs, e.g. `scenario:seed000`, so
+    /// `rollbase run --trajectory scenario:seed000` finds the platform where it starts).
+    #[arg(long, default_value = "nominal")]
+    start: String,
     /// Time from a SYNC to the modules' feedback frames (µs).
     #[arg(long, value_name = "US", default_value_t = 300.0)]
     response_latency_us: f64,
@@ -131,9 +136,33 @@ fn run(cli: Cli) -> Result<(), CliError> {
             reason: "must be between 0 and 4000 µs",
         });
     }
+    let initial = match cli.start.as_str() {
+        "nominal" => None,
+        other => {
+            let name = other.strip_prefix("scenario:").unwrap_or(other);
+            let sc: rollbase_control::scenario::Scenario =
+                name.parse().map_err(|_| CliError::Option {
+                    option: "--start",
+                    value: other.to_string(),
+                    reason: "use `nominal` or `scenario:seed000` / `scenario:seed001`",
+                })?;
+            let traj = rollbase_control::scenario::trajectory(sc, &platform).map_err(|_| {
+                CliError::Option {
+                    option: "--start",
+                    value: other.to_string(),
+                    reason: "the scenario cannot be built for this platform",
+                }
+            })?;
+            Some(rollbase_vcan_sim::InitialState::from_reference(
+                &platform,
+                &traj.sample(0.0),
+            ))
+        }
+    };
     let cfg = SimConfig {
         plant,
         faults,
+        initial,
         seed: cli.seed,
         response_latency: Duration::from_secs_f64(lat * 1e-6),
         ..SimConfig::default()
