@@ -51,6 +51,9 @@ pub enum CliError {
         /// What went wrong.
         message: String,
     },
+    /// The socketcand bridge failed.
+    #[error(transparent)]
+    Bridge(#[from] crate::bridge::BridgeError),
     /// An argument value is not acceptable.
     #[error("{0}")]
     Usage(String),
@@ -81,6 +84,8 @@ enum Command {
     ProtocolDoc,
     /// Print the bus-load table of the protocol for a configuration.
     BusLoad(BusLoadArgs),
+    /// Serve userspace CAN buses over TCP with the socketcand protocol (127.0.0.1:29536).
+    Bridge(crate::bridge::BridgeArgs),
     /// Platform file commands.
     Config {
         #[command(subcommand)]
@@ -172,6 +177,10 @@ struct MonitorArgs {
     /// Print a summary (frames per kind, rejections, SYNC period) at the end.
     #[arg(long)]
     summary: bool,
+    /// One JSON object per frame (id, DLC, data, decoded signals or the rejection) instead
+    /// of text; with --summary, a last object {"summary": …}.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Args, Debug)]
@@ -199,6 +208,7 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
         Command::Demo(a) => demo(a),
         Command::Run(a) => run_bus(a),
         Command::Monitor(a) => monitor(a),
+        Command::Bridge(a) => Ok(crate::bridge::run(a)?),
         Command::Plot(a) => {
             let rep = rollbase_control::plot::plot_recording(&a.file, &a.out)?;
             for f in &rep.files {
@@ -364,7 +374,12 @@ impl Sinks {
         }
     }
 
-    fn finish(mut self, common: &CommonRun, scenario: &str) -> Result<RunSummary, CliError> {
+    /// Closes the outputs; returns the summary and, when recording, messages per topic.
+    fn finish(
+        mut self,
+        common: &CommonRun,
+        scenario: &str,
+    ) -> Result<(RunSummary, Option<BTreeMap<String, u64>>), CliError> {
         if let Some(e) = self.error.take() {
             return Err(e);
         }
@@ -374,12 +389,14 @@ impl Sinks {
                 message: e.to_string(),
             })?;
         }
+        let mut recorded = None;
         if let Some(m) = self.mcap.take() {
             let s = m.finish()?;
             let total: u64 = s.messages.values().sum();
             if !common.json {
                 eprintln!("recorded {total} messages on {} topics", s.messages.len());
             }
+            recorded = Some(s.messages);
         }
         if let Some(dir) = &common.plots {
             let path = common
@@ -393,7 +410,7 @@ impl Sinks {
                 }
             }
         }
-        Ok(self.summary)
+        Ok((self.summary, recorded))
     }
 }
 
@@ -467,8 +484,13 @@ fn demo(a: DemoArgs) -> Result<i32, CliError> {
     } else {
         run_demo_realtime(&mut core, sim, &mut sinks, duration, a.common.json)?;
     }
-    let summary = sinks.finish(&a.common, sc.name())?;
-    print_summary(&summary, a.common.json, core.supervisor().reason());
+    let (summary, recorded) = sinks.finish(&a.common, sc.name())?;
+    print_summary(
+        &summary,
+        a.common.json,
+        core.supervisor().reason(),
+        recorded.as_ref(),
+    );
     Ok(exit_code(&summary))
 }
 
@@ -524,7 +546,17 @@ fn run_demo_realtime(
         let sim_stop = sim_stop.clone();
         std::thread::Builder::new()
             .name("rollbase-sim".into())
-            .spawn(move || sim.run_realtime(&mut sim_node, &sim_stop))
+            .spawn(move || {
+                // The simulated modules stand in for hardware, which never waits for the
+                // controller's process: give them real-time priority too (one above the cycle
+                // thread's), so a loaded machine delays neither side.
+                let _ = rollbase_control::runtime::realtime_setup(&RealtimeOptions {
+                    fifo_priority: Some(81),
+                    lock_memory: false,
+                    max_cycles: None,
+                });
+                sim.run_realtime(&mut sim_node, &sim_stop)
+            })
             .map_err(|e| CliError::Usage(format!("cannot start the simulator thread: {e}")))?
     };
     let (tx, rx) = std::sync::mpsc::sync_channel::<CycleRecord>(2048);
@@ -590,9 +622,15 @@ fn print_summary(
     s: &RunSummary,
     json: bool,
     reason: Option<rollbase_control::supervisor::FaultReason>,
+    recorded: Option<&BTreeMap<String, u64>>,
 ) {
     if json {
-        println!("{}", s.to_json());
+        let mut j = s.to_json();
+        if let Some(r) = recorded {
+            // Messages per MCAP topic, to check a recording against its run.
+            j["recorded_messages"] = serde_json::json!(r);
+        }
+        println!("{j}");
         return;
     }
     let j = s.to_json();
@@ -641,7 +679,8 @@ fn run_bus(a: RunArgs) -> Result<i32, CliError> {
     let mut meta = BTreeMap::new();
     meta.insert("bus".into(), a.bus.clone());
     meta.insert("trajectory".into(), a.trajectory.clone());
-    let mut sinks = Sinks::new(&name, &a.common, &a.bus, origin, meta)?;
+    // The interface name as candump logs it ("vcan0", also for socketcand://HOST:PORT/vcan0).
+    let mut sinks = Sinks::new(&name, &a.common, canbus.name(), origin, meta)?;
     let stop = Arc::new(AtomicBool::new(false));
     install_ctrl_c(stop.clone());
     if let Some(d) = a.duration {
@@ -690,8 +729,13 @@ fn run_bus(a: RunArgs) -> Result<i32, CliError> {
         );
     }
     sinks.summary.deadline_misses = sinks.summary.deadline_misses.max(report.deadline_misses);
-    let summary = sinks.finish(&a.common, &name)?;
-    print_summary(&summary, a.common.json, core.supervisor().reason());
+    let (summary, recorded) = sinks.finish(&a.common, &name)?;
+    print_summary(
+        &summary,
+        a.common.json,
+        core.supervisor().reason(),
+        recorded.as_ref(),
+    );
     Ok(exit_code(&summary))
 }
 
@@ -716,10 +760,20 @@ fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
                 let deadline = std::time::Instant::now() + Duration::from_millis(200);
                 match canbus.recv_until(deadline) {
                     Ok(Some(f)) => {
-                        println!(
-                            "{}",
-                            candump::describe(&mut rx, &mut stats, f.timestamp, &f.frame)
-                        );
+                        if a.json {
+                            let v = crate::monitor_json::frame_json(
+                                &mut rx,
+                                &mut stats,
+                                f.timestamp,
+                                &f.frame,
+                            );
+                            emit!("{v}");
+                        } else {
+                            println!(
+                                "{}",
+                                candump::describe(&mut rx, &mut stats, f.timestamp, &f.frame)
+                            );
+                        }
                     }
                     Ok(None) => {}
                     Err(e) if e.is_retryable() => {}
@@ -741,10 +795,24 @@ fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
                     continue;
                 }
                 match candump::parse_line(&line) {
+                    Ok(e) if a.json => {
+                        let v = crate::monitor_json::frame_json(
+                            &mut rx,
+                            &mut stats,
+                            e.timestamp,
+                            &e.frame,
+                        );
+                        emit!("{v}");
+                    }
                     Ok(e) => println!(
                         "{}",
                         candump::describe(&mut rx, &mut stats, e.timestamp, &e.frame)
                     ),
+                    Err(e) if a.json => {
+                        stats.unparsable += 1;
+                        let v = serde_json::json!({"line": lineno + 1, "error": e.to_string()});
+                        emit!("{v}");
+                    }
                     Err(e) => {
                         stats.unparsable += 1;
                         println!("line {}: {e}", lineno + 1);
@@ -758,7 +826,10 @@ fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
             ))
         }
     }
-    if a.summary {
+    if a.summary && a.json {
+        let v = crate::monitor_json::summary_json(&stats);
+        emit!("{v}");
+    } else if a.summary {
         emit!("{stats}");
     }
     Ok(0)

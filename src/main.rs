@@ -4,6 +4,8 @@
 //! non-zero. See README.md for the two first commands (the demo and the tests).
 
 mod app;
+mod bridge;
+mod monitor_json;
 
 use clap::Parser;
 

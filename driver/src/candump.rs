@@ -6,7 +6,8 @@
 //! - `181#R` / `181#R3` — remote frame, optionally with its DLC (0..=8).
 //!
 //! Written exactly as candump writes them: 6 fraction digits, upper-case hex, no byte
-//! separators. On reading, 1..=9 fraction digits and lower-case hex are accepted too. Lines
+//! separators. On reading, 1..=9 fraction digits and lower-case hex are accepted too, and so
+//! is the direction flag python-can's `CanutilsLogWriter` appends (` R` received, ` T` sent). Lines
 //! rollbase cannot represent are reported as [`CandumpError::Unsupported`], never panics:
 //! CAN FD (`##`), 29-bit ids and error frames (8-digit ids), and classic frames with a raw
 //! DLC above 8 (`_` suffix).
@@ -257,8 +258,17 @@ pub fn parse_line_with_kind(line: &str) -> Result<(LogEntry, FrameKind), Candump
     let (fr_tok, fr_col, rest, off) = next_token(rest, off)
         .ok_or_else(|| syntax(off + 1, "", "a frame like 181#0011223344556677"))?;
     let (frame, kind) = parse_frame(fr_tok, fr_col)?;
+    // python-can's CanutilsLogWriter appends the direction: ` R` (received) or ` T` (sent).
+    let (rest, off) = match next_token(rest, off) {
+        Some(("R" | "T", _, r, o)) => (r, o),
+        _ => (rest, off),
+    };
     if let Some((extra, col, _, _)) = next_token(rest, off) {
-        return Err(syntax(col, extra, "end of line after the frame"));
+        return Err(syntax(
+            col,
+            extra,
+            "end of line after the frame (or one direction flag R or T)",
+        ));
     }
     Ok((
         LogEntry {
@@ -545,6 +555,23 @@ mod tests {
         assert_eq!(rd.remote_frames(), 1);
         let l = parse_line("(1.000000) can0 1ab#deadbeef\r\n").expect("parse");
         assert_eq!(format_line(&l), "(1.000000) can0 1AB#DEADBEEF");
+    }
+
+    #[test]
+    fn python_can_direction_flags_are_accepted() {
+        let r = parse_line("(1700000000.123456) vcan0 080#00000033 R\n").expect("rx");
+        let t = parse_line("(1700000000.123456) vcan0 080#00000033 T").expect("tx");
+        assert_eq!(r, t);
+        assert_eq!(r.frame.data(), &[0, 0, 0, 0x33]);
+        let e = parse_line("(1.0) vcan0 080#00 X").expect_err("unknown flag");
+        assert!(
+            matches!(e, CandumpError::Syntax { column: 20, .. }),
+            "{e:?}"
+        );
+        assert!(
+            parse_line("(1.0) vcan0 080#00 R T").is_err(),
+            "one flag at most"
+        );
     }
 
     #[test]

@@ -1,6 +1,6 @@
 //! The bus: one small synchronous trait for the 250 Hz cycle ([`CanBus`]), one async face
-//! for tools ([`AsyncCanBus`]), and the backends: SocketCAN ([`socketcan`]) and the
-//! in-process virtual bus ([`virtual_bus`]).
+//! for tools ([`AsyncCanBus`]), and the backends: SocketCAN ([`socketcan`]), socketcand over
+//! TCP ([`socketcand`]) and the in-process virtual bus ([`virtual_bus`]).
 //!
 //! Errors say whether retrying makes sense ([`BusError::is_retryable`]), in the spirit of
 //! socketcan-rs' `ShouldRetry`.
@@ -11,6 +11,7 @@ use std::time::Instant;
 use crate::frame::{CanFrame, TimestampedFrame};
 
 pub mod socketcan;
+pub mod socketcand;
 pub mod virtual_bus;
 
 pub use virtual_bus::{BusClock, BusStats, VirtualBus, VirtualBusConfig, VirtualNode};
@@ -161,7 +162,8 @@ pub trait AsyncCanBus {
     fn recv(&mut self) -> impl Future<Output = Result<TimestampedFrame, BusError>> + Send;
 }
 
-/// Opens a SocketCAN interface by name ("vcan0", "can0", ...).
+/// Opens a SocketCAN interface by name ("vcan0", "can0", ...), or a socketcand server's bus
+/// by URL (`socketcand://HOST:PORT/CHANNEL`, see [`socketcand`]).
 ///
 /// Errors say what to run: a missing interface names the `ip link add` commands, a kernel
 /// without CAN support (errno 97) says so and suggests `--bus virtual`. The name "virtual" is
@@ -176,6 +178,9 @@ pub fn open(name: &str) -> Result<Box<dyn CanBus>, BusError> {
                      command runs the simulator in-process this way)"
                 .to_string(),
         });
+    }
+    if name.starts_with(socketcand::SCHEME) {
+        return Ok(Box::new(socketcand::SocketcandBus::open(name)?));
     }
     Ok(Box::new(socketcan::SocketCanBus::open(name)?))
 }
