@@ -3,12 +3,21 @@
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+/// The tests of this file run one at a time: the real-time one must not share the two cores
+/// with a lockstep run of another test.
+static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 fn rollbase() -> Command {
     Command::new(env!("CARGO_BIN_EXE_rollbase"))
 }
 
 #[test]
 fn ctrl_c_during_a_real_time_demo_is_a_controlled_stop_then_exit() {
+    let _serial = serial();
     let child = rollbase()
         .args(["demo", "--json"])
         .stdout(Stdio::piped())
@@ -40,6 +49,7 @@ fn ctrl_c_during_a_real_time_demo_is_a_controlled_stop_then_exit() {
 
 #[test]
 fn bad_platform_file_names_the_field_and_fails() {
+    let _serial = serial();
     let dir = std::env::temp_dir().join(format!("rollbase-cli-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let good = rollbase().args(["config", "default"]).output().unwrap();
@@ -69,6 +79,7 @@ fn bad_platform_file_names_the_field_and_fails() {
 
 #[test]
 fn unknown_scenario_and_bus_are_clear_errors() {
+    let _serial = serial();
     let out = rollbase()
         .args(["demo", "--scenario", "nope"])
         .output()
@@ -92,6 +103,7 @@ fn unknown_scenario_and_bus_are_clear_errors() {
 
 #[test]
 fn lockstep_demo_json_has_the_documented_fields() {
+    let _serial = serial();
     let out = rollbase()
         .args(["demo", "--lockstep", "--json"])
         .output()

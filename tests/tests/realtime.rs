@@ -28,7 +28,15 @@ fn three_seconds_in_real_time_without_deadline_misses() {
     let mut simnode = bus.node("simulator");
     let sim_stop = Arc::new(AtomicBool::new(false));
     let ss = sim_stop.clone();
-    let sim_thread = std::thread::spawn(move || sim.run_realtime(&mut simnode, &ss));
+    let sim_thread = std::thread::spawn(move || {
+        // The simulated modules stand in for hardware: same real-time treatment as the demo.
+        let _ = rollbase_control::runtime::realtime_setup(&RealtimeOptions {
+            fifo_priority: Some(81),
+            lock_memory: false,
+            max_cycles: None,
+        });
+        sim.run_realtime(&mut simnode, &ss)
+    });
     let (tx, rx) = std::sync::mpsc::sync_channel(4096);
     let stop = AtomicBool::new(false);
     let opts = RealtimeOptions {
