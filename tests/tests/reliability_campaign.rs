@@ -62,3 +62,28 @@ fn interface_down_during_alignment_then_rearm_completes_the_trajectory() {
 fn bad_files_and_infeasible_limits_are_refused_before_start() {
     assert_pass(&bad_input());
 }
+
+#[test]
+fn steering_encoder_jump_is_detected_within_a_cycle_and_stops_the_platform() {
+    use rollbase_control::supervisor::FaultReason;
+    use rollbase_vcan_sim::faults::EncoderJump;
+    let mut f = rollbase_vcan_sim::FaultSchedule::default();
+    f.encoder_jump.push(EncoderJump {
+        node: 4,
+        at: 8.0,
+        amount: 0.3,
+    });
+    let c = sim_fault("encoder jump", "encoder-jump fault", f, 8.0, |r| {
+        matches!(
+            r,
+            FaultReason::EncoderJump {
+                wheel: 3,
+                node: 4,
+                ..
+            }
+        )
+    });
+    assert_pass(&c);
+    // One cycle (4 ms) after the jump, not later.
+    assert!(c.detection.contains("4 ms"), "detection {}", c.detection);
+}

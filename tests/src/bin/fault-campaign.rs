@@ -68,10 +68,10 @@ fn main() {
     });
     rows.push(sim_fault(
         "steering encoder jump (node 4, +0.3 rad, 8 s)",
-        "required: detect (angle step inconsistent with the measured steering rate) → fault, controlled stop",
+        "two readings one SYNC apart must differ by what the trapezoid of their measured steering rates predicts; more than 0.02 rad unexplained → encoder-jump fault naming the module, controlled stop, latched",
         f,
         8.0,
-        |_| true,
+        |r| matches!(r, FaultReason::EncoderJump { wheel: 3, node: 4, .. }),
     ));
     rows.push(leg_end_stop());
     rows.push(wheel_slip());
