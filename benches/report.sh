@@ -24,7 +24,7 @@ if ! command -v cyclictest >/dev/null; then
 fi
 cargo build -j"$JOBS" --release -p rollbase-tests --bin perf-report
 cargo bench -j"$JOBS" -p rollbase-driver --bench codec -- "${CRIT_ARGS[@]}" | tee "$LOGDIR/bench-codec.log"
-cargo bench -j"$JOBS" -p rollbase-control --bench control_step -- "${CRIT_ARGS[@]}" | tee "$LOGDIR/bench-control.log"
+cargo bench -j"$JOBS" -p rollbase-tests --bench control_step -- "${CRIT_ARGS[@]}" | tee "$LOGDIR/bench-control.log"
 cargo bench -j"$JOBS" -p rollbase-tests --bench cycle_core -- "${CRIT_ARGS[@]}" | tee "$LOGDIR/bench-cycle-core.log"
 "$TARGET_DIR/release/perf-report" \
   --out docs/performance.md \

@@ -14,43 +14,13 @@ use rollbase_control::scenario::{self, Scenario};
 use rollbase_control::{Platform, MAX_WHEELS};
 use rollbase_driver::fault::FaultModel;
 use rollbase_driver::frame::CanFrame;
+use rollbase_tests::alloc_count::{allocations, reset, set_counting, CountingAlloc};
 use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
 use std::hint::black_box;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-struct Counting;
-static ALLOCS: AtomicU64 = AtomicU64::new(0);
-thread_local! {
-    static COUNTING: Cell<bool> = const { Cell::new(false) };
-}
-
-// SAFETY: forwards every call to the system allocator; only counts.
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCS.fetch_add(1, Ordering::Relaxed);
-        }
-        // SAFETY: same contract as the caller's.
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: same contract as the caller's.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCS.fetch_add(1, Ordering::Relaxed);
-        }
-        // SAFETY: same contract as the caller's.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
-
 #[global_allocator]
-static GLOBAL: Counting = Counting;
+static GLOBAL: CountingAlloc = CountingAlloc;
 
 /// The controller core, the simulator and the virtual bus, advanced one cycle at a time.
 struct Harness {
@@ -124,11 +94,11 @@ impl Harness {
         let tw = Duration::from_secs_f64(k as f64 * dt + 0.002);
         self.sim.advance_to(t0);
         self.bus.set_time(t0);
-        COUNTING.with(|c| c.set(count));
+        set_counting(count);
         let a = Instant::now();
         let sync = self.core.start_cycle(t0.as_secs_f64());
         let start = a.elapsed();
-        COUNTING.with(|c| c.set(false));
+        set_counting(false);
         let _ = self.bus.controller_send(&sync);
         while let Ok(Some(f)) = self.bus.peer_recv() {
             LockstepPeer::on_frame(&mut self.sim, f.timestamp, &f.frame);
@@ -146,7 +116,7 @@ impl Harness {
         while let Ok(Some(f)) = self.bus.controller_recv() {
             self.rx.push((f.timestamp.as_secs_f64(), f.frame));
         }
-        COUNTING.with(|c| c.set(count));
+        set_counting(count);
         let b = Instant::now();
         for (t, f) in &self.rx {
             self.core.on_frame(f, *t);
@@ -154,7 +124,7 @@ impl Harness {
         let m = self.core.finish_cycle(tw.as_secs_f64(), &mut self.out);
         black_box(self.core.record());
         let finish = b.elapsed();
-        COUNTING.with(|c| c.set(false));
+        set_counting(false);
         for f in self.out.iter().take(m) {
             let _ = self.bus.controller_send(f);
         }
@@ -168,7 +138,7 @@ impl Harness {
 fn benches(c: &mut Criterion) {
     // Allocation count over one whole scenario.
     let mut h = Harness::new();
-    ALLOCS.store(0, Ordering::Relaxed);
+    reset();
     let mut cycles = 0u64;
     let mut tracking = 0u64;
     while !h.done() && cycles < 20_000 {
@@ -178,7 +148,7 @@ fn benches(c: &mut Criterion) {
     }
     println!(
         "ALLOCS cycle_core/whole_cycle {} {cycles} (tracking cycles {tracking})",
-        ALLOCS.load(Ordering::Relaxed)
+        allocations()
     );
 
     // Timing over the whole scenario, restarted when it ends (rebuilt outside the timing).

@@ -2,6 +2,7 @@
 //! path (encode → virtual bus → simulated modules → virtual bus → decode) on virtual time.
 #![deny(missing_docs)]
 
+pub mod alloc_count;
 pub mod campaign;
 
 use rollbase_control::record::CycleRecord;

@@ -9,49 +9,12 @@ use rollbase_control::scenario::{self, Scenario};
 use rollbase_control::{Platform, MAX_WHEELS};
 use rollbase_driver::fault::FaultModel;
 use rollbase_driver::frame::CanFrame;
+use rollbase_tests::alloc_count::{allocations, counted, CountingAlloc};
 use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
-struct Counting;
-static ALLOCS: AtomicU64 = AtomicU64::new(0);
-thread_local! {
-    static COUNTING: Cell<bool> = const { Cell::new(false) };
-}
-
-// SAFETY: forwards to the system allocator; only counts.
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCS.fetch_add(1, Ordering::Relaxed);
-        }
-        // SAFETY: same contract as the caller's.
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: same contract as the caller's.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCS.fetch_add(1, Ordering::Relaxed);
-        }
-        // SAFETY: same contract as the caller's.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
-
 #[global_allocator]
-static GLOBAL: Counting = Counting;
-
-fn counted<T>(f: impl FnOnce() -> T) -> T {
-    COUNTING.with(|c| c.set(true));
-    let r = f();
-    COUNTING.with(|c| c.set(false));
-    r
-}
+static GLOBAL: CountingAlloc = CountingAlloc;
 
 #[test]
 fn the_cycle_core_does_not_allocate() {
@@ -112,9 +75,5 @@ fn the_cycle_core_does_not_allocate() {
         }
     }
     assert!(counted_cycles > 5000, "tracked {counted_cycles} cycles");
-    assert_eq!(
-        ALLOCS.load(Ordering::Relaxed),
-        0,
-        "allocations inside the cycle core"
-    );
+    assert_eq!(allocations(), 0, "allocations inside the cycle core");
 }

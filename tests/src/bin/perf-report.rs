@@ -808,7 +808,7 @@ fn report(o: &Options) -> Result<(), String> {
     writeln!(w).ok();
     writeln!(
         w,
-        "`control/benches/control_step.rs`: inputs recorded from a closed loop against the ideal \
+        "`tests/benches/control_step.rs`: inputs recorded from a closed loop against the ideal \
          plant, replayed step by step (controller states evolve as in the run). Odometry → \
          avoidance → controller in the order `CycleCore::finish_cycle` runs them. \
          `tests/benches/cycle_core.rs` times the whole controller side of a cycle on the full \

@@ -19,41 +19,11 @@ use rollbase_control::odometry::{Odometry, OdometryOutput};
 use rollbase_control::scenario::{self, Scenario};
 use rollbase_control::trajectory::Trajectory;
 use rollbase_control::{Measurement, Platform, ReferenceSample};
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
+use rollbase_tests::alloc_count::{allocations, reset, set_counting, CountingAlloc};
 use std::hint::black_box;
-use std::sync::atomic::{AtomicU64, Ordering};
-
-struct Counting;
-static ALLOCS: AtomicU64 = AtomicU64::new(0);
-thread_local! {
-    static COUNTING: Cell<bool> = const { Cell::new(false) };
-}
-
-// SAFETY: forwards every call to the system allocator; only counts.
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCS.fetch_add(1, Ordering::Relaxed);
-        }
-        // SAFETY: same contract as the caller's.
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: same contract as the caller's.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCS.fetch_add(1, Ordering::Relaxed);
-        }
-        // SAFETY: same contract as the caller's.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
 
 #[global_allocator]
-static GLOBAL: Counting = Counting;
+static GLOBAL: CountingAlloc = CountingAlloc;
 
 /// Which parts of the step run.
 #[derive(Clone, Copy)]
@@ -199,15 +169,15 @@ fn record(p: &Platform, sc: Scenario, kind: Kind) -> Vec<Step> {
 /// Replays `steps` once with allocation counting on; prints the count.
 fn count_allocations(name: &str, p: &Platform, steps: &[Step], parts: Parts) {
     let mut stack = Stack::new(p, steps[0].nominal, parts);
-    ALLOCS.store(0, Ordering::Relaxed);
-    COUNTING.with(|c| c.set(true));
+    reset();
+    set_counting(true);
     for s in steps {
         black_box(stack.step(p, black_box(s)));
     }
-    COUNTING.with(|c| c.set(false));
+    set_counting(false);
     println!(
         "ALLOCS control_step/{name} {} {}",
-        ALLOCS.load(Ordering::Relaxed),
+        allocations(),
         steps.len()
     );
 }
