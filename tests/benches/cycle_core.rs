@@ -9,11 +9,12 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use rollbase_control::avoidance::AvoidanceConfig;
-use rollbase_control::runtime::{CycleCore, LockstepBus, LockstepPeer, VirtualLockstepBus};
+use rollbase_control::runtime::{
+    lockstep_cycle, CycleCore, LockstepState, StepHooks, VirtualLockstepBus,
+};
 use rollbase_control::scenario::{self, Scenario};
-use rollbase_control::{Platform, MAX_WHEELS};
+use rollbase_control::Platform;
 use rollbase_driver::fault::FaultModel;
-use rollbase_driver::frame::CanFrame;
 use rollbase_tests::alloc_count::{allocations, reset, set_counting, CountingAlloc};
 use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};
 use std::hint::black_box;
@@ -24,14 +25,10 @@ static GLOBAL: CountingAlloc = CountingAlloc;
 
 /// The controller core, the simulator and the virtual bus, advanced one cycle at a time.
 struct Harness {
-    p: Platform,
     core: CycleCore,
     sim: Simulator,
     bus: VirtualLockstepBus,
-    k: u64,
-    out: [CanFrame; MAX_WHEELS],
-    pending: Vec<(Duration, CanFrame)>,
-    rx: Vec<(f64, CanFrame)>,
+    st: LockstepState,
 }
 
 /// Wall time spent in the core during one cycle, split by phase.
@@ -61,19 +58,12 @@ impl Harness {
             Err(e) => panic!("simulator: {e}"),
         };
         core.arm();
-        let blank = match CanFrame::new(0, &[]) {
-            Ok(f) => f,
-            Err(e) => panic!("empty frame: {e}"),
-        };
+        let st = LockstepState::new(&core);
         Self {
-            p,
             core,
             sim,
             bus: VirtualLockstepBus::new(FaultModel::none(), 5),
-            k: 0,
-            out: [blank; MAX_WHEELS],
-            pending: Vec::with_capacity(256),
-            rx: Vec::with_capacity(256),
+            st,
         }
     }
 
@@ -87,51 +77,37 @@ impl Harness {
 
     /// One cycle; the calls into the core are timed and, with `count`, allocation-counted.
     fn cycle(&mut self, count: bool) -> CoreTime {
-        let dt = self.p.dt();
-        let k = self.k;
-        self.k += 1;
-        let t0 = Duration::from_secs_f64(k as f64 * dt);
-        let tw = Duration::from_secs_f64(k as f64 * dt + 0.002);
-        self.sim.advance_to(t0);
-        self.bus.set_time(t0);
-        set_counting(count);
-        let a = Instant::now();
-        let sync = self.core.start_cycle(t0.as_secs_f64());
-        let start = a.elapsed();
-        set_counting(false);
-        let _ = self.bus.controller_send(&sync);
-        while let Ok(Some(f)) = self.bus.peer_recv() {
-            LockstepPeer::on_frame(&mut self.sim, f.timestamp, &f.frame);
-        }
-        self.sim.advance_to(tw);
-        let pending = &mut self.pending;
-        self.sim.drain_tx(&mut |t, f| pending.push((t, f)));
-        self.pending.sort_by_key(|x| x.0);
-        for (t, f) in self.pending.drain(..) {
-            self.bus.set_time(t.min(tw));
-            let _ = self.bus.peer_send(&f);
-        }
-        self.bus.set_time(tw);
-        self.rx.clear();
-        while let Ok(Some(f)) = self.bus.controller_recv() {
-            self.rx.push((f.timestamp.as_secs_f64(), f.frame));
-        }
-        set_counting(count);
-        let b = Instant::now();
-        for (t, f) in &self.rx {
-            self.core.on_frame(f, *t);
-        }
-        let m = self.core.finish_cycle(tw.as_secs_f64(), &mut self.out);
+        // The driver calls the hook around `start_cycle` (first pair) and around
+        // `on_frame` … `finish_cycle` (second pair).
+        let mut phase = 0usize;
+        let mut spans = [Duration::ZERO; 2];
+        let mut entered = Instant::now();
+        let mut hook = |on: bool| {
+            if on {
+                set_counting(count);
+                entered = Instant::now();
+            } else {
+                spans[phase.min(1)] += entered.elapsed();
+                set_counting(false);
+                phase += 1;
+            }
+        };
+        let mut hooks = StepHooks {
+            around_core: Some(&mut hook),
+            ..Default::default()
+        };
+        lockstep_cycle(
+            &mut self.st,
+            &mut self.core,
+            &mut self.bus,
+            &mut self.sim,
+            &mut hooks,
+        );
         black_box(self.core.record());
-        let finish = b.elapsed();
-        set_counting(false);
-        for f in self.out.iter().take(m) {
-            let _ = self.bus.controller_send(f);
+        CoreTime {
+            start: spans[0],
+            finish: spans[1],
         }
-        while let Ok(Some(f)) = self.bus.peer_recv() {
-            LockstepPeer::on_frame(&mut self.sim, f.timestamp, &f.frame);
-        }
-        CoreTime { start, finish }
     }
 }
 

@@ -13,7 +13,9 @@
 //! debug-mode tests stay fast (the assertions are the same).
 
 use rollbase_control::record::CycleRecord;
-use rollbase_control::runtime::{CycleCore, LockstepBus, RuntimeConfig, VirtualLockstepBus};
+use rollbase_control::runtime::{
+    lockstep_cycle, CycleCore, LockstepState, RuntimeConfig, VirtualLockstepBus,
+};
 use rollbase_control::scenario::{self, Scenario};
 use rollbase_control::supervisor::{FaultReason, SupervisorState};
 use rollbase_control::{Platform, MAX_WHEELS};
@@ -72,17 +74,8 @@ impl RigOptions {
 /// controller gets instead.
 pub type RxHook<'a> = &'a mut dyn FnMut(&CanFrame, &mut dyn FnMut(CanFrame));
 
-/// Per-cycle hooks.
-#[derive(Default)]
-pub struct Hooks<'a> {
-    /// The controller is dead this cycle: no SYNC, no control step, no SETPOINT.
-    pub controller_silent: bool,
-    /// The controller's interface is down this cycle: its sends and receives fail.
-    pub iface_down: bool,
-    /// Sees every frame the controller receives and emits what the controller gets instead
-    /// (the frame itself, a changed frame, extra frames, or nothing).
-    pub on_rx: Option<RxHook<'a>>,
-}
+/// Per-cycle hooks: those of the runtime's lockstep driver.
+pub type Hooks<'a> = rollbase_control::runtime::StepHooks<'a>;
 
 /// The whole stack in lockstep, one cycle per [`Rig::step`].
 pub struct Rig {
@@ -92,18 +85,8 @@ pub struct Rig {
     pub sim: Simulator,
     /// The in-process bus on virtual time.
     pub bus: VirtualLockstepBus,
-    k: u64,
-    period: f64,
-    window: f64,
-    pending: Vec<(Duration, CanFrame)>,
-    out: [CanFrame; MAX_WHEELS],
-    rx_buf: Vec<CanFrame>,
-    /// Frames lost at the controller because its interface was down.
-    pub lost_iface_down: u64,
-}
-
-fn blank() -> CanFrame {
-    CanFrame::new(0, &[]).unwrap_or_else(|_| unreachable!("id 0, len 0 is a valid frame"))
+    /// The lockstep driver's state (time, queued frames, frames lost to a down interface).
+    pub st: LockstepState,
 }
 
 impl Rig {
@@ -125,120 +108,34 @@ impl Rig {
             .map_err(|e| e.to_string())?;
         let bus = VirtualLockstepBus::new(o.bus_faults, o.seed ^ 0x5EED);
         core.arm();
-        Ok(Self {
-            period: platform.dt(),
-            window: o.runtime.feedback_window.clamp(0.0, platform.dt()),
-            core,
-            sim,
-            bus,
-            k: 0,
-            pending: Vec::with_capacity(64),
-            out: [blank(); MAX_WHEELS],
-            rx_buf: Vec::with_capacity(64),
-            lost_iface_down: 0,
-        })
+        let st = LockstepState::new(&core);
+        Ok(Self { core, sim, bus, st })
     }
 
     /// Cycles run so far.
     pub fn cycle(&self) -> u64 {
-        self.k
+        self.st.cycle()
     }
 
     /// Start time of the next cycle (s).
     pub fn time(&self) -> f64 {
-        self.k as f64 * self.period
-    }
-
-    fn flush_peer(&mut self, until: Duration) {
-        let pending = &mut self.pending;
-        self.sim.drain_tx(&mut |t, f| pending.push((t, f)));
-        pending.sort_by_key(|(t, _)| *t);
-        let mut sent = 0;
-        for (t, f) in pending.iter() {
-            if *t > until {
-                break;
-            }
-            self.bus.set_time(*t);
-            let _ = self.bus.peer_send(f);
-            sent += 1;
-        }
-        pending.drain(..sent);
-    }
-
-    fn deliver_to_peer(&mut self) {
-        while let Ok(Some(f)) = self.bus.peer_recv() {
-            self.sim.on_frame(f.timestamp, &f.frame);
-        }
+        self.st.time()
     }
 
     /// Runs one cycle; returns the controller's record (`None` when the controller is
     /// silent this cycle).
     pub fn step(&mut self, hooks: &mut Hooks<'_>) -> Option<&CycleRecord> {
-        let k = self.k;
-        self.k += 1;
-        let t0 = Duration::from_secs_f64(k as f64 * self.period);
-        let t_win = Duration::from_secs_f64(k as f64 * self.period + self.window);
-        self.sim.advance_to(t0);
-        let truth = {
-            let t = self.sim.truth();
-            Some((t.pose, t.legs))
-        };
-        self.flush_peer(t0);
-        self.bus.set_time(t0);
-        if !hooks.controller_silent {
-            let sync = self.core.start_cycle(t0.as_secs_f64());
-            if hooks.iface_down || self.bus.controller_send(&sync).is_err() {
-                self.core.report_bus_error();
-            }
+        if lockstep_cycle(
+            &mut self.st,
+            &mut self.core,
+            &mut self.bus,
+            &mut self.sim,
+            hooks,
+        ) {
+            Some(self.core.record())
+        } else {
+            None
         }
-        self.deliver_to_peer();
-        self.sim.advance_to(t_win);
-        self.flush_peer(t_win);
-        self.bus.set_time(t_win);
-        if hooks.controller_silent {
-            // A dead controller reads nothing; its queue is emptied so it cannot overflow.
-            while let Ok(Some(_)) = self.bus.controller_recv() {}
-            return None;
-        }
-        self.rx_buf.clear();
-        loop {
-            match self.bus.controller_recv() {
-                Ok(Some(f)) if hooks.iface_down => {
-                    let _ = f;
-                    self.lost_iface_down += 1;
-                }
-                Ok(Some(f)) => {
-                    let buf = &mut self.rx_buf;
-                    match hooks.on_rx.as_mut() {
-                        Some(h) => h(&f.frame, &mut |g| buf.push(g)),
-                        None => buf.push(f.frame),
-                    }
-                }
-                Ok(None) => break,
-                Err(_) => {
-                    self.core.report_bus_error();
-                    break;
-                }
-            }
-        }
-        if hooks.iface_down {
-            self.core.report_bus_error();
-        }
-        let tw = t_win.as_secs_f64();
-        for f in &self.rx_buf {
-            self.core.on_frame(f, tw);
-        }
-        let m = self.core.finish_cycle(tw, &mut self.out);
-        for f in self.out.iter().take(m) {
-            if hooks.iface_down || self.bus.controller_send(f).is_err() {
-                self.core.report_bus_error();
-            }
-        }
-        self.deliver_to_peer();
-        let rec = self.core.record_mut();
-        rec.truth = truth;
-        rec.timing.period_us = self.period * 1e6;
-        Some(self.core.record())
     }
 }
 
@@ -368,7 +265,7 @@ fn fmt_reason(r: &Option<FaultReason>) -> String {
 
 /// Runs the rig until the core is done or `max_cycles`, feeding `track`.
 fn run_to_end(rig: &mut Rig, track: &mut Track, max_cycles: u64, hooks: &mut Hooks<'_>) {
-    let window = rig.window;
+    let window = rig.st.window();
     while rig.cycle() < max_cycles {
         if let Some(r) = rig.step(hooks) {
             track.update(r, window);
@@ -1123,7 +1020,7 @@ pub fn iface_down(from: f64, to: f64, rearm: f64, quick: bool) -> CaseResult {
     );
     c.data_lost = format!(
         "{} frames dropped at the controller while down",
-        rig.lost_iface_down
+        rig.st.lost_iface_down
     );
     c
 }
