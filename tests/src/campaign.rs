@@ -21,54 +21,17 @@ use rollbase_control::supervisor::{FaultReason, SupervisorState};
 use rollbase_control::{Platform, MAX_WHEELS};
 use rollbase_driver::codec::{decode, encode, Payload};
 use rollbase_driver::crc::frame_crc;
-use rollbase_driver::fault::FaultModel;
 use rollbase_driver::frame::CanFrame;
 use rollbase_driver::protocol::{classify, spec, MessageKind};
 use rollbase_driver::rx::CounterPolicy;
-use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};
+use rollbase_vcan_sim::{FaultSchedule, Simulator};
 use std::time::Duration;
 
 /// The nominal position-error bound of the seed-000 run (m); the issue allows 2× under loss.
 pub const NOMINAL_BOUND_M: f64 = 0.005;
 
-/// What to build a [`Rig`] from.
-#[derive(Clone, Debug)]
-pub struct RigOptions {
-    /// Scenario (trajectory).
-    pub scenario: Scenario,
-    /// Runtime configuration.
-    pub runtime: RuntimeConfig,
-    /// Simulator seed.
-    pub seed: u64,
-    /// Plant parameters.
-    pub plant: PlantConfig,
-    /// Simulator fault schedule.
-    pub faults: FaultSchedule,
-    /// Faults of the bus medium (both directions).
-    pub bus_faults: FaultModel,
-    /// The platform the simulator builds (`None` = the controller's). A different one models
-    /// a mismatch between the description and the machine (e.g. an end stop short of
-    /// `lambda_max`).
-    pub sim_platform: Option<Platform>,
-    /// Waypoints of a quintic-spline trajectory used instead of the scenario's.
-    pub waypoints: Option<Vec<rollbase_control::trajectory::Waypoint>>,
-}
-
-impl RigOptions {
-    /// Seed 000 with its default runtime, no faults, seed 1.
-    pub fn new(scenario: Scenario) -> Self {
-        Self {
-            scenario,
-            runtime: scenario::runtime_config(scenario),
-            seed: 1,
-            plant: PlantConfig::default(),
-            faults: FaultSchedule::default(),
-            bus_faults: FaultModel::none(),
-            sim_platform: None,
-            waypoints: None,
-        }
-    }
-}
+/// What to build a [`Rig`] from: the harness's options.
+pub type RigOptions = crate::RunOptions;
 
 /// A hook on the controller's receive path: sees one received frame, emits what the
 /// controller gets instead.
@@ -92,21 +55,7 @@ pub struct Rig {
 impl Rig {
     /// Builds the stack and arms the controller (as `run_lockstep` does).
     pub fn new(o: &RigOptions) -> Result<Self, String> {
-        let platform = Platform::justin();
-        let traj: Box<dyn rollbase_control::trajectory::Trajectory> = match &o.waypoints {
-            Some(w) => Box::new(
-                rollbase_control::trajectory::QuinticSpline::new(&platform, w)
-                    .map_err(|e| e.to_string())?,
-            ),
-            None => scenario::trajectory(o.scenario, &platform).map_err(|e| e.to_string())?,
-        };
-        let r0 = traj.sample(0.0);
-        let mut core =
-            CycleCore::new(platform.clone(), traj, o.runtime.clone()).map_err(|e| e.to_string())?;
-        let sim_p = o.sim_platform.clone().unwrap_or_else(|| platform.clone());
-        let sim = Simulator::new(&sim_p, o.plant.clone(), o.faults.clone(), &r0, o.seed)
-            .map_err(|e| e.to_string())?;
-        let bus = VirtualLockstepBus::new(o.bus_faults, o.seed ^ 0x5EED);
+        let (mut core, sim, bus, _) = crate::build(o)?;
         core.arm();
         let st = LockstepState::new(&core);
         Ok(Self { core, sim, bus, st })

@@ -37,6 +37,12 @@ pub struct RunOptions {
     /// Start the simulated platform at the trajectory's initial pose and legs (true) or at
     /// the simulator's nominal configuration (false: legs at their nominal extension).
     pub start_at_reference: bool,
+    /// The platform the simulator builds (`None` = the controller's). A different one models
+    /// a mismatch between the description and the machine (e.g. an end stop short of
+    /// `lambda_max`).
+    pub sim_platform: Option<Platform>,
+    /// Waypoints of a quintic-spline trajectory used instead of the scenario's.
+    pub waypoints: Option<Vec<rollbase_control::trajectory::Waypoint>>,
 }
 
 impl RunOptions {
@@ -52,6 +58,8 @@ impl RunOptions {
             stop_at_cycle: None,
             slack_s: 15.0,
             start_at_reference: true,
+            sim_platform: None,
+            waypoints: None,
         }
     }
 
@@ -74,17 +82,25 @@ pub struct RunOutcome {
     pub platform: Platform,
 }
 
-/// Runs the options in lockstep; `sink` sees every record too (e.g. to write MCAP).
-pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]])) -> RunOutcome {
+/// Builds the controller core, the simulator and the virtual bus for `opts` (the core is not
+/// armed yet); also returns the trajectory's duration (s).
+pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstepBus, f64), String> {
     let platform = Platform::justin();
-    let traj = scenario::trajectory(opts.scenario, &platform).expect("built-in scenario");
+    let traj: Box<dyn rollbase_control::trajectory::Trajectory> = match &opts.waypoints {
+        Some(w) => Box::new(
+            rollbase_control::trajectory::QuinticSpline::new(&platform, w)
+                .map_err(|e| e.to_string())?,
+        ),
+        None => scenario::trajectory(opts.scenario, &platform).map_err(|e| e.to_string())?,
+    };
     let duration = traj.duration();
     let r0 = traj.sample(0.0);
-    let mut core =
-        CycleCore::new(platform.clone(), traj, opts.runtime.clone()).expect("valid setup");
-    let mut sim = if opts.start_at_reference {
+    let core =
+        CycleCore::new(platform.clone(), traj, opts.runtime.clone()).map_err(|e| e.to_string())?;
+    let sim_p = opts.sim_platform.clone().unwrap_or(platform);
+    let sim = if opts.start_at_reference {
         Simulator::new(
-            &platform,
+            &sim_p,
             opts.plant.clone(),
             opts.faults.clone(),
             &r0,
@@ -92,7 +108,7 @@ pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]
         )
     } else {
         Simulator::with_config(
-            &platform,
+            &sim_p,
             SimConfig {
                 plant: opts.plant.clone(),
                 faults: opts.faults.clone(),
@@ -101,8 +117,15 @@ pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]
             },
         )
     }
-    .expect("valid simulator setup");
-    let mut bus = VirtualLockstepBus::new(opts.bus_faults, opts.seed ^ 0x5EED);
+    .map_err(|e| e.to_string())?;
+    let bus = VirtualLockstepBus::new(opts.bus_faults, opts.seed ^ 0x5EED);
+    Ok((core, sim, bus, duration))
+}
+
+/// Runs the options in lockstep; `sink` sees every record too (e.g. to write MCAP).
+pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]])) -> RunOutcome {
+    let (mut core, mut sim, mut bus, duration) = build(opts).expect("valid setup");
+    let platform = core.platform().clone();
     let max_cycles = ((duration + opts.slack_s) * platform.cycle_hz) as u64;
     let mut records = Vec::with_capacity(max_cycles as usize);
     let mut summary = RunSummary::new(opts.scenario.name());
