@@ -499,6 +499,16 @@ impl DflController {
         let by = v[1] - my + lk * ca * u_om + sa * u_leg[k];
         let u_w = c * bx + s * by;
         let singular = vw.abs() < 1e-4;
+        if singular && ref_max < 5.0 * EPSILON {
+            // The compensator's reference wheel reached rest while the reference itself is
+            // within 5ε of rest: the final approach of a rest-to-rest move (with measured
+            // velocity feedback η may settle a few cycles before the reference does). This is
+            // the termination of seed 000, not singularity A: report it as finished so the
+            // runtime hands the last millimetres to a controller that can stop at rest.
+            self.finished = true;
+            out.finished = true;
+            return out;
+        }
         let v_phi_k = if singular {
             0.0
         } else {

@@ -217,6 +217,10 @@ pub struct CycleCore {
     odom: Odometry,
     sup: Supervisor,
     controller: Box<dyn TrackingController + Send>,
+    /// Takes over from the DFL when it terminates before the trajectory's end (it cannot
+    /// pass through rest, seed 000 Sect. IV): the kinematic controller stops at rest.
+    terminal: KinematicController,
+    terminal_active: bool,
     avoidance: Option<Avoidance>,
     trajectory: Box<dyn Trajectory>,
     fb: [WheelFeedback; MAX_WHEELS],
@@ -294,6 +298,8 @@ impl CycleCore {
             odom: Odometry::new(start),
             sup,
             controller,
+            terminal: KinematicController::new(&platform),
+            terminal_active: false,
             avoidance,
             trajectory,
             fb: [WheelFeedback::default(); MAX_WHEELS],
@@ -628,7 +634,22 @@ impl CycleCore {
                 pose: odo.pose,
                 reference: &reference,
             };
-            let o = self.controller.step(&self.platform, &input);
+            let mut o = if self.terminal_active {
+                self.terminal.step(&self.platform, &input)
+            } else {
+                self.controller.step(&self.platform, &input)
+            };
+            if o.finished
+                && !self.terminal_active
+                && self.cfg.controller == ControllerKind::Dfl
+                && t_ref + dt < self.trajectory.duration()
+            {
+                // The DFL terminated (|v_W*| < ε) before the reference's end: the kinematic
+                // controller tracks the rest of the way and stops at rest.
+                self.terminal_active = true;
+                self.terminal.reset(&self.platform, &reference);
+                o = self.terminal.step(&self.platform, &input);
+            }
             track_cmd = o.command;
             // A DFL reports `singular` until the reference wheel moves faster than ε (it
             // cannot leave rest on its own, seed 000 Sect. IV); that is waiting, not a fault.
@@ -638,7 +659,11 @@ impl CycleCore {
             }
             sup_in.controller_singular =
                 (o.singular && self.controller_moved) || !command_finite(&track_cmd);
-            sup_in.trajectory_done = o.finished || t_ref >= self.trajectory.duration();
+            sup_in.trajectory_done = (o.finished
+                && (self.terminal_active
+                    || self.cfg.controller != ControllerKind::Dfl
+                    || t_ref + dt >= self.trajectory.duration()))
+                || t_ref >= self.trajectory.duration() + 2.0;
         }
         let at_rest = command_at_rest(&self.last_cmd, self.sup.config().rest_speed);
         let state_before = self.sup.state();
@@ -650,6 +675,7 @@ impl CycleCore {
             // on the reference (perfect matching condition, seed 000 Sect. IV).
             self.track_start_cycle = Some(self.cycle);
             self.controller_moved = false;
+            self.terminal_active = false;
             let r0 = self.trajectory.sample(0.0);
             self.controller.reset(&self.platform, &r0);
             let input = ControlInput {

@@ -23,7 +23,14 @@ fn waypoints(dx: f64, dy: f64, dth: f64, legs: [f64; 4], t: f64) -> Vec<Waypoint
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 6, ..ProptestConfig::default() })]
+    // Seeded (issue 8: "random (seeded) feasible trajectories"): every run draws the same
+    // cases, so a failure here is reproducible and never depends on the day.
+    #![proptest_config(ProptestConfig {
+        cases: 12,
+        rng_seed: proptest::test_runner::RngSeed::Fixed(0x5eed_0008),
+        failure_persistence: None,
+        ..ProptestConfig::default()
+    })]
     #[test]
     fn commands_are_finite_and_within_limits(
         dx in -0.6f64..0.6,
