@@ -1258,6 +1258,23 @@ fn sleep_until(ns: i128) {
     }
 }
 
+/// Hands every frame waiting on `bus` to the core, stamped `t`; a non-retryable receive
+/// error is reported to the core (bus-error fault) and ends the drain.
+fn drain(bus: &mut dyn CanBus, core: &mut CycleCore, t: f64, report: &mut RealtimeReport) {
+    loop {
+        match bus.try_recv() {
+            Ok(Some(f)) => core.on_frame(&f.frame, t),
+            Ok(None) => break,
+            Err(e) if e.is_retryable() => break,
+            Err(_) => {
+                core.report_bus_error();
+                report.bus_errors += 1;
+                break;
+            }
+        }
+    }
+}
+
 /// Tries SCHED_FIFO and mlockall as asked; returns one line per attempt for the operator.
 pub fn realtime_setup(opts: &RealtimeOptions) -> Vec<String> {
     let mut out = Vec::new();
@@ -1313,7 +1330,6 @@ pub fn run_realtime(
     let period_ns = (core.platform().dt() * 1e9).round() as i128;
     let window_ns = (core.cfg.feedback_window * 1e9).round() as i128;
     let start = ts_ns(&monotonic_now()) + period_ns;
-    let std_start = std::time::Instant::now() + Duration::from_nanos(period_ns as u64);
     let mut out = [blank_frame(); MAX_WHEELS];
     let mut prev_wake: Option<i128> = None;
     let mut stop_sent = false;
@@ -1335,31 +1351,20 @@ pub fn run_realtime(
             stop_sent = true;
         }
         let sync = core.start_cycle(td);
+        // Answers that arrived after the last window belong to the previous SYNC: hand them
+        // over now, stamped just before this SYNC, so they count as late (not as this
+        // cycle's samples). Then SYNC, one sleep to the window's end, one drain: two wake-ups
+        // a cycle instead of one per frame (the cycle waits for the window's end anyway).
+        drain(bus, core, td - 1e-6, &mut report);
         if let Err(e) = bus.send(&sync) {
             if !e.is_retryable() {
                 core.report_bus_error();
                 report.bus_errors += 1;
             }
         }
-        let window_end = std_start + Duration::from_nanos((deadline - start + window_ns) as u64);
-        loop {
-            match bus.recv_until(window_end) {
-                Ok(Some(f)) => {
-                    let rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
-                    core.on_frame(&f.frame, rt);
-                }
-                Ok(None) => break,
-                Err(e) => {
-                    if !e.is_retryable() {
-                        core.report_bus_error();
-                        report.bus_errors += 1;
-                        // Do not spin on a dead interface: wait out the window.
-                        sleep_until(deadline + window_ns);
-                        break;
-                    }
-                }
-            }
-        }
+        sleep_until(deadline + window_ns);
+        let now_rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
+        drain(bus, core, now_rt, &mut report);
         let collected = ts_ns(&monotonic_now());
         let tw = (collected - start) as f64 * 1e-9;
         let m = core.finish_cycle(tw, &mut out);
