@@ -175,7 +175,7 @@ check1() {
     # Bus-down mid-run: the controller must report the bus error and end in Fault (not hang,
     # not claim Stopped).
     if have rollbase && have rollbase-sim; then
-        rollbase-sim --bus "$IFACE" >"$W/c1-sim.out" 2>"$W/c1-sim.err" &
+        rollbase-sim --bus "$IFACE" --start scenario:seed000 >"$W/c1-sim.out" 2>"$W/c1-sim.err" &
         sp=$!
         sleep 1
         rollbase run --bus "$IFACE" --trajectory scenario:seed000 --duration 20 --json >"$W/c1-run.json" 2>"$W/c1-run.err" &
@@ -374,7 +374,7 @@ check5() {
     fi
     candump -L "$IFACE" >"$W/c5-cap.log" 2>/dev/null &
     cp=$!
-    rollbase-sim --bus "$IFACE" >"$W/c5-sim.out" 2>"$W/c5-sim.err" &
+    rollbase-sim --bus "$IFACE" --start scenario:seed000 >"$W/c5-sim.out" 2>"$W/c5-sim.err" &
     sp=$!
     sleep 1
     rollbase run --bus "$IFACE" --trajectory scenario:seed000 --json >"$W/c5-run.json" 2>"$W/c5-run.err" &
