@@ -103,6 +103,79 @@ pub struct TimestampedFrame {
     pub frame: CanFrame,
 }
 
+/// Largest number of frames one call of the cycle may emit (SYNC, heartbeat, NMT and SDO
+/// requests of up to 24 devices, or the setpoints of 8 wheels).
+pub const FRAME_BUF_CAPACITY: usize = 64;
+
+/// A fixed-capacity list of frames to send, so the cycle never allocates. Frames pushed
+/// beyond the capacity are counted in [`FrameBuf::overflow`], never silently lost.
+#[derive(Clone, Debug)]
+pub struct FrameBuf {
+    frames: [CanFrame; FRAME_BUF_CAPACITY],
+    len: usize,
+    overflow: u32,
+}
+
+impl Default for FrameBuf {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl FrameBuf {
+    /// An empty buffer.
+    pub fn new() -> Self {
+        // Id 0 with no data is a valid classic frame.
+        let blank = CanFrame {
+            id: 0,
+            len: 0,
+            data: [0; MAX_DATA_LEN],
+        };
+        Self {
+            frames: [blank; FRAME_BUF_CAPACITY],
+            len: 0,
+            overflow: 0,
+        }
+    }
+
+    /// Appends a frame; returns false (and counts it) when the buffer is full.
+    pub fn push(&mut self, f: CanFrame) -> bool {
+        if self.len < FRAME_BUF_CAPACITY {
+            self.frames[self.len] = f;
+            self.len += 1;
+            true
+        } else {
+            self.overflow = self.overflow.saturating_add(1);
+            false
+        }
+    }
+
+    /// The frames, in the order pushed.
+    pub fn as_slice(&self) -> &[CanFrame] {
+        &self.frames[..self.len]
+    }
+
+    /// Number of frames.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// True when no frame was pushed.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Empties the buffer (the overflow count is kept).
+    pub fn clear(&mut self) {
+        self.len = 0;
+    }
+
+    /// Frames refused because the buffer was full, since creation.
+    pub fn overflow(&self) -> u32 {
+        self.overflow
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -121,6 +194,20 @@ mod tests {
         assert_eq!(f.id(), 0x7FF);
         assert_eq!(f.data(), &[1, 2, 3]);
         assert_eq!(f.len(), 3);
+    }
+
+    #[test]
+    fn frame_buf_is_bounded_and_counts_overflow() {
+        let mut b = FrameBuf::new();
+        let f = CanFrame::new(0x80, &[]).expect("valid");
+        for _ in 0..FRAME_BUF_CAPACITY {
+            assert!(b.push(f));
+        }
+        assert!(!b.push(f));
+        assert_eq!((b.len(), b.overflow()), (FRAME_BUF_CAPACITY, 1));
+        b.clear();
+        assert!(b.is_empty());
+        assert_eq!(b.overflow(), 1);
     }
 
     #[test]

@@ -13,11 +13,15 @@
 //!   (SocketCAN, in-process virtual bus).
 //! - [`candump`]: `candump -L` log reader/writer.
 //! - [`dbc`], [`busload`]: artefacts generated from the table.
+//! - [`canopen`]: the second protocol profile, CANopen (CiA 301) with the CiA 402 drive and
+//!   CiA 406 encoder profiles: frames, SDO, PDO mapping, the 402 state machine, units, the
+//!   boot configuration and the sans-IO master.
 #![deny(missing_docs)]
 
 pub mod bus;
 pub mod busload;
 pub mod candump;
+pub mod canopen;
 pub mod codec;
 pub mod crc;
 pub mod dbc;

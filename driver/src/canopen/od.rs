@@ -1,0 +1,78 @@
+//! Object dictionary indices the master writes and the simulated devices serve.
+//!
+//! CiA 301 communication objects, CiA 402 drive objects and CiA 406 encoder objects, with
+//! their CANopen data types noted (the SDO and PDO code works on raw little-endian bytes).
+
+/// Device type (UNSIGNED32): low word = device profile number, high word = profile-specific
+/// type (CiA 301 7.5.2.1).
+pub const DEVICE_TYPE: u16 = 0x1000;
+/// Error register (UNSIGNED8).
+pub const ERROR_REGISTER: u16 = 0x1001;
+/// COB-ID SYNC (UNSIGNED32).
+pub const COB_ID_SYNC: u16 = 0x1005;
+/// Communication cycle period (UNSIGNED32, µs).
+pub const COMM_CYCLE_PERIOD: u16 = 0x1006;
+/// Consumer heartbeat time (ARRAY of UNSIGNED32: node-ID << 16 | time in ms).
+pub const CONSUMER_HEARTBEAT: u16 = 0x1016;
+/// Producer heartbeat time (UNSIGNED16, ms).
+pub const PRODUCER_HEARTBEAT: u16 = 0x1017;
+/// Identity object (RECORD: 1 vendor-ID, 2 product code, 3 revision, 4 serial number).
+pub const IDENTITY: u16 = 0x1018;
+/// RPDO communication parameters, RPDO n at 0x1400 + n − 1.
+pub const RPDO_COMM: u16 = 0x1400;
+/// RPDO mapping parameters, RPDO n at 0x1600 + n − 1.
+pub const RPDO_MAP: u16 = 0x1600;
+/// TPDO communication parameters, TPDO n at 0x1800 + n − 1.
+pub const TPDO_COMM: u16 = 0x1800;
+/// TPDO mapping parameters, TPDO n at 0x1A00 + n − 1.
+pub const TPDO_MAP: u16 = 0x1A00;
+
+/// PDO communication parameter sub-index: COB-ID (UNSIGNED32, bit 31 = not valid).
+pub const PDO_COB_ID: u8 = 1;
+/// PDO communication parameter sub-index: transmission type (UNSIGNED8).
+pub const PDO_TRANSMISSION: u8 = 2;
+/// PDO communication parameter sub-index: inhibit time (UNSIGNED16, 100 µs; TPDO only).
+pub const PDO_INHIBIT: u8 = 3;
+/// PDO communication parameter sub-index: event timer (UNSIGNED16, ms; on an RPDO the
+/// deadline-monitoring time).
+pub const PDO_EVENT_TIMER: u8 = 5;
+/// Bit 31 of a PDO COB-ID entry: the PDO is not valid (disabled).
+pub const PDO_COB_INVALID: u32 = 1 << 31;
+/// Bit 30 of a TPDO COB-ID entry: no RTR allowed on this PDO.
+pub const PDO_COB_NO_RTR: u32 = 1 << 30;
+
+/// CiA 402: abort connection option code (INTEGER16): what the drive does on a
+/// communication loss (heartbeat or RPDO timeout) while in Operation enabled.
+pub const ABORT_CONNECTION_OPTION: u16 = 0x6007;
+/// CiA 402: controlword (UNSIGNED16).
+pub const CONTROLWORD: u16 = 0x6040;
+/// CiA 402: statusword (UNSIGNED16).
+pub const STATUSWORD: u16 = 0x6041;
+/// CiA 402: modes of operation (INTEGER8).
+pub const MODES_OF_OPERATION: u16 = 0x6060;
+/// CiA 402: modes of operation display (INTEGER8).
+pub const MODES_OF_OPERATION_DISPLAY: u16 = 0x6061;
+/// CiA 402: position actual value (INTEGER32, increments).
+pub const POSITION_ACTUAL: u16 = 0x6064;
+/// CiA 402: velocity actual value (INTEGER32, velocity units).
+pub const VELOCITY_ACTUAL: u16 = 0x606C;
+/// CiA 402: interpolation time period (RECORD: 1 value UNSIGNED8, 2 index INTEGER8;
+/// period = value · 10^index s), used by the cyclic synchronous modes.
+pub const INTERPOLATION_TIME_PERIOD: u16 = 0x60C2;
+/// CiA 402: target velocity (INTEGER32, velocity units).
+pub const TARGET_VELOCITY: u16 = 0x60FF;
+
+/// CiA 406: position value (UNSIGNED32, measuring steps).
+pub const POSITION_VALUE: u16 = 0x6004;
+/// CiA 406: linear encoder measuring step settings (RECORD: 1 position step in nm,
+/// 2 speed step).
+pub const MEASURING_STEP: u16 = 0x6005;
+/// CiA 406: speed value (ARRAY of INTEGER16; sub 1 = channel 1).
+pub const SPEED_VALUE: u16 = 0x6030;
+
+/// CiA 402 cyclic synchronous velocity mode, the value of 0x6060 the master writes.
+pub const MODE_CSV: i8 = 9;
+/// Device profile number of drives (low word of 0x1000).
+pub const PROFILE_DRIVE: u16 = 402;
+/// Device profile number of encoders (low word of 0x1000).
+pub const PROFILE_ENCODER: u16 = 406;
