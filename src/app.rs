@@ -7,7 +7,7 @@ use rollbase_control::runtime::{
     VirtualLockstepBus,
 };
 use rollbase_control::scenario::{self, Scenario};
-use rollbase_control::Platform;
+use rollbase_control::{Platform, Protocol};
 use rollbase_driver::bus::{self as bus, CanBus};
 use rollbase_driver::candump::{self, CandumpWriter, LogEntry};
 use rollbase_driver::frame::CanFrame;
@@ -82,6 +82,8 @@ enum Command {
     Dbc,
     /// Print docs/protocol.md, generated from the protocol table.
     ProtocolDoc,
+    /// Print docs/cia402.md, generated from the CiA 402 profile's tables.
+    Cia402Doc,
     /// Print the bus-load table of the protocol for a configuration.
     BusLoad(BusLoadArgs),
     /// Serve userspace CAN buses over TCP with the socketcand protocol (127.0.0.1:29536).
@@ -101,7 +103,12 @@ enum ConfigCmd {
         file: PathBuf,
     },
     /// Print the default (Justin-like) platform file.
-    Default,
+    Default {
+        /// Wire profile of the printed file: native, or cia402 (with the full `[cia402]`
+        /// table: node-IDs, drive and encoder units, timing).
+        #[arg(long, default_value = "native")]
+        profile: Protocol,
+    },
 }
 
 #[derive(Args, Debug, Clone)]
@@ -128,6 +135,10 @@ struct CommonRun {
     /// Print one JSON object with the run's summary instead of the table.
     #[arg(long)]
     json: bool,
+    /// Wire profile: native (rollbase wheel modules) or cia402 (CANopen CiA 402 drives and
+    /// CiA 406 leg encoders); default: the platform file's `protocol`.
+    #[arg(long)]
+    profile: Option<Protocol>,
 }
 
 #[derive(Args, Debug)]
@@ -168,6 +179,12 @@ struct RunArgs {
 
 #[derive(Args, Debug)]
 struct MonitorArgs {
+    /// Wire profile to decode: native or cia402; default: the platform file's `protocol`.
+    #[arg(long)]
+    profile: Option<Protocol>,
+    /// Platform file (the CiA 402 profile's node-IDs and units come from it).
+    #[arg(long)]
+    config: Option<PathBuf>,
     /// Live CAN interface to listen on.
     #[arg(long, conflicts_with = "candump")]
     bus: Option<String>,
@@ -194,9 +211,13 @@ struct PlotArgs {
 
 #[derive(Args, Debug)]
 struct BusLoadArgs {
-    /// Platform file (its wheel count and cycle rate are used).
+    /// Platform file (its wheel count and cycle rate are used, and for the CiA 402 profile
+    /// its `[cia402]` timing).
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Wire profile: native or cia402; default: the platform file's `protocol`.
+    #[arg(long)]
+    profile: Option<Protocol>,
     /// Bit rate (bit/s).
     #[arg(long, default_value_t = 1_000_000)]
     bitrate: u32,
@@ -227,16 +248,37 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
             print!("{}", rollbase_driver::dbc::protocol_markdown());
             Ok(0)
         }
+        Command::Cia402Doc => {
+            print!("{}", rollbase_driver::canopen::doc::markdown());
+            Ok(0)
+        }
         Command::BusLoad(a) => {
-            let p = load_platform(a.config.as_deref())?;
-            let cfg = rollbase_driver::busload::BusLoadConfig {
-                modules: p.n(),
-                cycle_hz: p.cycle_hz,
-                bitrate: a.bitrate,
-                ..Default::default()
-            };
-            let report = rollbase_driver::busload::report(&cfg);
-            print!("{report}");
+            let p = load_platform_as(a.config.as_deref(), a.profile)?;
+            if a.bitrate == 0 {
+                return Err(CliError::Usage(
+                    "--bitrate 0: give the bus bit rate in bit/s, e.g. 1000000".into(),
+                ));
+            }
+            match p.protocol {
+                Protocol::Native => {
+                    let cfg = rollbase_driver::busload::BusLoadConfig {
+                        modules: p.n(),
+                        cycle_hz: p.cycle_hz,
+                        bitrate: a.bitrate,
+                        ..Default::default()
+                    };
+                    print!("{}", rollbase_driver::busload::report(&cfg));
+                }
+                Protocol::Cia402 => {
+                    let l = rollbase_driver::canopen::busload::load(
+                        &p.cia402(),
+                        p.n(),
+                        p.cycle_hz,
+                        a.bitrate,
+                    );
+                    println!("{l}");
+                }
+            }
             Ok(0)
         }
         Command::Config { cmd } => match cmd {
@@ -251,8 +293,13 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
                 print!("{}", p.to_toml_string());
                 Ok(0)
             }
-            ConfigCmd::Default => {
-                print!("{}", Platform::justin().to_toml_string());
+            ConfigCmd::Default { profile } => {
+                let mut p = Platform::justin();
+                p.protocol = profile;
+                if profile == Protocol::Cia402 {
+                    p.cia402 = Some(p.cia402());
+                }
+                print!("{}", p.to_toml_string());
                 Ok(0)
             }
         },
@@ -264,6 +311,17 @@ fn load_platform(path: Option<&Path>) -> Result<Platform, CliError> {
         Some(p) => Platform::load(p)?,
         None => Platform::justin(),
     })
+}
+
+/// The platform file (or the default platform) with the wire profile overridden when
+/// `profile` is given, validated again (the `[cia402]` section must fit the platform).
+fn load_platform_as(path: Option<&Path>, profile: Option<Protocol>) -> Result<Platform, CliError> {
+    let mut p = load_platform(path)?;
+    if let Some(pr) = profile {
+        p.protocol = pr;
+        p.validate()?;
+    }
+    Ok(p)
 }
 
 fn runtime_config(common: &CommonRun, sc: Option<Scenario>) -> Result<RuntimeConfig, CliError> {
@@ -422,7 +480,7 @@ fn unix_now() -> f64 {
 }
 
 fn demo(a: DemoArgs) -> Result<i32, CliError> {
-    let platform = load_platform(a.common.config.as_deref())?;
+    let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
     let sc: Scenario = a.scenario.parse()?;
     let traj = scenario::trajectory(sc, &platform)?;
     let duration = traj.duration();
@@ -665,7 +723,7 @@ fn print_summary(
 }
 
 fn run_bus(a: RunArgs) -> Result<i32, CliError> {
-    let platform = load_platform(a.common.config.as_deref())?;
+    let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
     let (traj, sc) = scenario::trajectory_arg(&a.trajectory, &platform)?;
     let duration = traj.duration();
     let cfg = runtime_config(&a.common, sc)?;
@@ -739,8 +797,77 @@ fn run_bus(a: RunArgs) -> Result<i32, CliError> {
     Ok(exit_code(&summary))
 }
 
+/// Decodes frames for the monitor in the chosen profile.
+enum Decoder {
+    Native(rollbase_driver::rx::Receiver),
+    Cia402(rollbase_driver::canopen::config::Cia402Config),
+}
+
+impl Decoder {
+    fn text(&mut self, stats: &mut candump::MonitorStats, ts: Duration, f: &CanFrame) -> String {
+        match self {
+            Decoder::Native(rx) => candump::describe(rx, stats, ts, f),
+            Decoder::Cia402(cfg) => {
+                let r = rollbase_driver::canopen::describe::describe(f, cfg);
+                crate::monitor_json::count_cia402(stats, &r);
+                let mut line = format!(
+                    "({}.{:06}) {:03X} [{}]",
+                    ts.as_secs(),
+                    ts.subsec_micros(),
+                    f.id(),
+                    f.len()
+                );
+                for b in f.data() {
+                    line.push_str(&format!(" {b:02X}"));
+                }
+                for _ in f.len()..8 {
+                    line.push_str("   ");
+                }
+                match r {
+                    Ok(d) => line.push_str(&format!("  {d}")),
+                    Err(e) => line.push_str(&format!("  REJECTED: {e}")),
+                }
+                line
+            }
+        }
+    }
+
+    fn json(
+        &mut self,
+        stats: &mut candump::MonitorStats,
+        ts: Duration,
+        f: &CanFrame,
+    ) -> serde_json::Value {
+        match self {
+            Decoder::Native(rx) => crate::monitor_json::frame_json(rx, stats, ts, f),
+            Decoder::Cia402(cfg) => crate::monitor_json::cia402_frame_json(cfg, stats, ts, f),
+        }
+    }
+
+    fn summary(&self, stats: &candump::MonitorStats, json: bool) -> String {
+        match (self, json) {
+            (Decoder::Native(_), true) => crate::monitor_json::summary_json(stats).to_string(),
+            (Decoder::Native(_), false) => stats.to_string(),
+            (Decoder::Cia402(_), true) => {
+                crate::monitor_json::cia402_summary_json(stats).to_string()
+            }
+            (Decoder::Cia402(_), false) => format!(
+                "frames: {}, described: {}, rejected: {}; unparsable lines: {}",
+                stats.frames,
+                stats.frames - stats.rejected,
+                stats.rejected,
+                stats.unparsable
+            ),
+        }
+    }
+}
+
 fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
-    let mut rx = rollbase_driver::rx::Receiver::new();
+    let platform = load_platform_as(a.config.as_deref(), a.profile)?;
+    let mut dec = match platform.protocol {
+        Protocol::Native => Decoder::Native(rollbase_driver::rx::Receiver::new()),
+        Protocol::Cia402 => Decoder::Cia402(platform.cia402()),
+    };
     let mut stats = candump::MonitorStats::default();
     // A closed stdout (`rollbase monitor … | head`) ends the monitor quietly.
     let mut out = std::io::stdout().lock();
@@ -761,18 +888,11 @@ fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
                 match canbus.recv_until(deadline) {
                     Ok(Some(f)) => {
                         if a.json {
-                            let v = crate::monitor_json::frame_json(
-                                &mut rx,
-                                &mut stats,
-                                f.timestamp,
-                                &f.frame,
-                            );
+                            let v = dec.json(&mut stats, f.timestamp, &f.frame);
                             emit!("{v}");
                         } else {
-                            println!(
-                                "{}",
-                                candump::describe(&mut rx, &mut stats, f.timestamp, &f.frame)
-                            );
+                            let line = dec.text(&mut stats, f.timestamp, &f.frame);
+                            emit!("{line}");
                         }
                     }
                     Ok(None) => {}
@@ -796,18 +916,13 @@ fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
                 }
                 match candump::parse_line(&line) {
                     Ok(e) if a.json => {
-                        let v = crate::monitor_json::frame_json(
-                            &mut rx,
-                            &mut stats,
-                            e.timestamp,
-                            &e.frame,
-                        );
+                        let v = dec.json(&mut stats, e.timestamp, &e.frame);
                         emit!("{v}");
                     }
-                    Ok(e) => println!(
-                        "{}",
-                        candump::describe(&mut rx, &mut stats, e.timestamp, &e.frame)
-                    ),
+                    Ok(e) => {
+                        let line = dec.text(&mut stats, e.timestamp, &e.frame);
+                        emit!("{line}");
+                    }
                     Err(e) if a.json => {
                         stats.unparsable += 1;
                         let v = serde_json::json!({"line": lineno + 1, "error": e.to_string()});
@@ -826,11 +941,9 @@ fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
             ))
         }
     }
-    if a.summary && a.json {
-        let v = crate::monitor_json::summary_json(&stats);
-        emit!("{v}");
-    } else if a.summary {
-        emit!("{stats}");
+    if a.summary {
+        let line = dec.summary(&stats, a.json);
+        emit!("{line}");
     }
     Ok(0)
 }

@@ -109,6 +109,48 @@ pub fn summary_json(stats: &MonitorStats) -> Value {
     }})
 }
 
+/// Counts one CiA 402 frame in the monitor statistics (frames, rejected).
+pub fn count_cia402(stats: &mut MonitorStats, r: &Result<String, String>) {
+    stats.frames += 1;
+    if r.is_err() {
+        stats.rejected += 1;
+    }
+}
+
+/// `--profile cia402 --json`: one object per frame with the frame's description
+/// (`rollbase_driver::canopen::describe`), or `"accepted": false` and `"error"`.
+pub fn cia402_frame_json(
+    cfg: &rollbase_driver::canopen::config::Cia402Config,
+    stats: &mut MonitorStats,
+    ts: Duration,
+    f: &CanFrame,
+) -> Value {
+    let r = rollbase_driver::canopen::describe::describe(f, cfg);
+    count_cia402(stats, &r);
+    let data: String = f.data().iter().map(|b| format!("{b:02X}")).collect();
+    let mut v = json!({"t": ts.as_secs_f64(), "id": f.id(), "dlc": f.len(), "data": data});
+    match r {
+        Ok(d) => {
+            v["accepted"] = json!(true);
+            v["description"] = json!(d);
+        }
+        Err(e) => {
+            v["accepted"] = json!(false);
+            v["error"] = json!(e);
+        }
+    }
+    v
+}
+
+/// The last object of `--profile cia402 --json --summary`.
+pub fn cia402_summary_json(stats: &MonitorStats) -> Value {
+    json!({"summary": {
+        "frames": stats.frames,
+        "rejected": stats.rejected,
+        "unparsable_lines": stats.unparsable,
+    }})
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

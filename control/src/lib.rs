@@ -10,6 +10,7 @@ pub mod avoidance;
 pub mod dfl;
 pub mod ideal_plant;
 pub mod kinematic;
+pub mod link;
 pub mod model;
 pub mod odometry;
 pub mod platform;
@@ -22,5 +23,5 @@ pub mod trajectory;
 pub mod types;
 pub mod wmr;
 
-pub use platform::{ConfigError, Platform};
+pub use platform::{ConfigError, Platform, Protocol};
 pub use types::*;

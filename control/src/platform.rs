@@ -13,6 +13,7 @@
 //! `limits.wheel_speed` …) and say what is wrong with its value.
 
 use crate::types::MAX_WHEELS;
+pub use rollbase_driver::canopen::config::Cia402Config;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -126,6 +127,48 @@ pub struct Platform {
     pub limits: Limits,
     /// Controller gains.
     pub gains: Gains,
+    /// Which protocol the wheel modules speak on the bus (default: the native profile).
+    #[serde(default)]
+    pub protocol: Protocol,
+    /// The CiA 402 profile's nodes, units and timing (`[cia402]`); used when `protocol =
+    /// "cia402"`. Absent: [`Cia402Config::for_wheels`] for the platform's wheel count.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cia402: Option<Cia402Config>,
+}
+
+/// The protocol profile the wheel modules speak.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Protocol {
+    /// rollbase's own wheel-module protocol: one SETPOINT and two FEEDBACK frames per module
+    /// and cycle, with rolling counters and CRC ([`rollbase_driver::protocol`]).
+    #[default]
+    Native,
+    /// CANopen: two CiA 402 drives (rolling, steering) and a CiA 406 leg encoder per wheel
+    /// ([`rollbase_driver::canopen`]).
+    Cia402,
+}
+
+impl std::str::FromStr for Protocol {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "native" => Ok(Self::Native),
+            "cia402" => Ok(Self::Cia402),
+            other => Err(format!(
+                "unknown protocol profile `{other}`: expected `native` or `cia402`"
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for Protocol {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Native => "native",
+            Self::Cia402 => "cia402",
+        })
+    }
 }
 
 impl Default for Platform {
@@ -174,7 +217,17 @@ impl Platform {
                 kin_k_heading: 2.0,
                 kin_k_leg: 2.0,
             },
+            protocol: Protocol::Native,
+            cia402: None,
         }
+    }
+
+    /// The CiA 402 profile's configuration: the `[cia402]` table, or the default node
+    /// assignment for this platform's wheel count.
+    pub fn cia402(&self) -> Cia402Config {
+        self.cia402
+            .clone()
+            .unwrap_or_else(|| Cia402Config::for_wheels(self.n()))
     }
 
     /// Number of wheels n.
@@ -322,6 +375,9 @@ impl Platform {
                 "exceeds the protocol's steer-rate range of ±32 rad/s",
             ));
         }
+        if self.protocol == Protocol::Cia402 || self.cia402.is_some() {
+            self.validate_cia402()?;
+        }
         let g = &self.gains;
         pos("gains.dfl_kp", g.dfl_kp)?;
         pos("gains.dfl_kd", g.dfl_kd)?;
@@ -333,9 +389,108 @@ impl Platform {
     }
 }
 
+impl Platform {
+    /// Checks the `[cia402]` section against the platform: node assignment and timing
+    /// ([`Cia402Config::validate`]), and that the units carry the platform's limits: twice
+    /// the wheel-speed and steering-rate limits must fit the drives' INTEGER32 velocity
+    /// objects, 1.2 times the leg-speed limit the encoders' INTEGER16 speed value, and every
+    /// leg extension the encoders' UNSIGNED32 position value.
+    fn validate_cia402(&self) -> Result<(), ConfigError> {
+        let c = self.cia402();
+        c.validate(self.n(), self.cycle_hz)
+            .map_err(|e| invalid(e.field, e.value, e.reason))?;
+        let l = &self.limits;
+        for (field, units, limit, name) in [
+            ("cia402.drive", c.drive, l.wheel_speed, "limits.wheel_speed"),
+            ("cia402.steer", c.steer, l.steer_rate, "limits.steer_rate"),
+        ] {
+            if units.velocity_from_si(2.0 * limit).is_none() {
+                return Err(invalid(
+                    format!("{field}.increments_per_rev"),
+                    units.increments_per_rev,
+                    format!(
+                        "with gear_ratio {} twice `{name}` = {limit} rad/s does not fit the drive's INTEGER32 velocity; check the encoder resolution and gear",
+                        units.gear_ratio
+                    ),
+                ));
+            }
+        }
+        let enc = c.leg_encoder;
+        if enc.max_speed() < 1.2 * l.leg_speed {
+            return Err(invalid(
+                "cia402.leg_encoder.speed_step_um_s",
+                enc.speed_step_um_s,
+                format!(
+                    "the INTEGER16 speed value reaches only {:.3} m/s, less than 1.2 × limits.leg_speed = {:.3} m/s; use a larger speed step",
+                    enc.max_speed(),
+                    1.2 * l.leg_speed
+                ),
+            ));
+        }
+        for (i, w) in self.wheels.iter().enumerate() {
+            if enc.m_to_position(w.lambda_min).is_none()
+                || enc.m_to_position(w.lambda_max).is_none()
+            {
+                return Err(invalid(
+                    "cia402.leg_encoder.offset_m",
+                    enc.offset_m,
+                    format!(
+                        "wheels[{i}]'s leg range [{}, {}] m is not representable by the encoder's position value (offset above lambda_min, or beyond UNSIGNED32 steps)",
+                        w.lambda_min, w.lambda_max
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn cia402_section_is_validated_against_the_platform() {
+        let mut p = Platform::justin();
+        p.protocol = Protocol::Cia402;
+        p.validate().unwrap();
+        let back = Platform::from_toml_str(&p.to_toml_string()).unwrap();
+        assert_eq!(back.protocol, Protocol::Cia402);
+        // The full section round-trips too.
+        p.cia402 = Some(Cia402Config::for_wheels(4));
+        let text = p.to_toml_string();
+        assert!(
+            text.contains("[cia402]") && text.contains("steer_node"),
+            "{text}"
+        );
+        assert_eq!(Platform::from_toml_str(&text).unwrap(), p);
+        let mut q = p.clone();
+        q.cia402.as_mut().unwrap().wheels.pop();
+        assert_eq!(err_field(&q), "cia402.wheels");
+        let mut q = p.clone();
+        q.cia402.as_mut().unwrap().wheels[3].leg_node = 2;
+        assert_eq!(err_field(&q), "cia402.wheels[3].leg_node");
+        let mut q = p.clone();
+        q.cia402.as_mut().unwrap().leg_encoder.speed_step_um_s = 1;
+        assert_eq!(err_field(&q), "cia402.leg_encoder.speed_step_um_s");
+        let mut q = p.clone();
+        q.cia402.as_mut().unwrap().leg_encoder.offset_m = 0.4;
+        assert_eq!(err_field(&q), "cia402.leg_encoder.offset_m");
+        let mut q = p.clone();
+        q.cia402.as_mut().unwrap().drive.gear_ratio = 900_000.0;
+        assert_eq!(err_field(&q), "cia402.drive.increments_per_rev");
+        // An unknown profile names the choices.
+        let t = Platform::justin()
+            .to_toml_string()
+            .replace("protocol = \"native\"", "protocol = \"canopen\"");
+        assert!(t.contains("canopen"));
+        match Platform::from_toml_str(&t) {
+            Err(ConfigError::Parse(m)) => {
+                assert!(m.contains("native") && m.contains("cia402"), "{m}")
+            }
+            other => panic!("{other:?}"),
+        }
+    }
 
     #[test]
     fn default_round_trips_through_toml() {

@@ -30,8 +30,10 @@ use std::path::Path;
 
 /// Largest number of received frames kept per cycle record.
 pub const MAX_RX_FRAMES: usize = 48;
-/// Largest number of sent frames kept per cycle record.
-pub const MAX_TX_FRAMES: usize = 2 + MAX_WHEELS;
+/// Largest number of sent frames kept per cycle record (the native profile sends SYNC and
+/// one SETPOINT per wheel; the CiA 402 profile up to SYNC, heartbeat, NMT and SDO requests
+/// for 24 devices and one RPDO per drive while booting).
+pub const MAX_TX_FRAMES: usize = 48;
 
 /// Every topic a recording has, in order.
 pub const TOPICS: [&str; 9] = [
@@ -149,6 +151,8 @@ pub struct CycleRecord {
     pub tx: [FrameRecord; MAX_TX_FRAMES],
     /// Number of valid entries in `tx`.
     pub n_tx: usize,
+    /// Frames sent this cycle, including any beyond `MAX_TX_FRAMES` that were not kept.
+    pub n_tx_total: u32,
     /// Latest decoded feedback per wheel.
     pub measurement: Measurement,
     /// Cycles since each wheel's last valid feedback.
@@ -198,6 +202,7 @@ impl CycleRecord {
             n_rx: 0,
             tx: [FrameRecord::default(); MAX_TX_FRAMES],
             n_tx: 0,
+            n_tx_total: 0,
             measurement: Measurement::default(),
             feedback_age: [0; MAX_WHEELS],
             module_state: [255; MAX_WHEELS],
@@ -228,6 +233,7 @@ impl CycleRecord {
 
     /// Appends a sent frame.
     pub fn push_tx(&mut self, f: FrameRecord) {
+        self.n_tx_total = self.n_tx_total.saturating_add(1);
         if self.n_tx < MAX_TX_FRAMES {
             self.tx[self.n_tx] = f;
             self.n_tx += 1;

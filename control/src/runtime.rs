@@ -24,10 +24,12 @@
 use crate::avoidance::{Avoidance, AvoidanceConfig};
 use crate::dfl::{alignment_command, ControlInput, DflController, TrackingController};
 use crate::kinematic::KinematicController;
+use crate::link::{Link, Update, WheelFault};
 use crate::model::wheel_positions;
 use crate::odometry::Odometry;
 use crate::platform::Platform;
 use crate::record::{AvoidanceRecord, CycleRecord, FrameRecord};
+use crate::supervisor::FaultReason;
 use crate::supervisor::{
     command_at_rest, stop_command, Mode, Supervisor, SupervisorConfig, SupervisorInput,
     SupervisorState,
@@ -35,12 +37,10 @@ use crate::supervisor::{
 use crate::trajectory::Trajectory;
 use crate::types::{Command, Measurement, Pose, ReferenceSample, MAX_WHEELS};
 use rollbase_driver::bus::{BusError, CanBus};
-use rollbase_driver::codec::{
-    encode, FeedbackA, FeedbackB, Message, ModuleState, Payload, Setpoint, SetpointFlags, Sync,
-};
-use rollbase_driver::frame::{CanFrame, TimestampedFrame};
-use rollbase_driver::rx::{CounterPolicy, Receiver, RxError};
-use rollbase_driver::DecodeError;
+use rollbase_driver::canopen::config::Role;
+use rollbase_driver::codec::{Setpoint, SetpointFlags};
+use rollbase_driver::frame::{CanFrame, FrameBuf, TimestampedFrame};
+use rollbase_driver::rx::CounterPolicy;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{SyncSender, TrySendError};
 use std::time::Duration;
@@ -181,25 +181,42 @@ pub fn check_feasible(p: &Platform, traj: &dyn Trajectory) -> Result<(), Runtime
     Ok(())
 }
 
+/// When a feedback stream last delivered a sample.
+#[derive(Clone, Copy, Debug, Default)]
+struct Arrival {
+    /// Cycle it arrived in (`None`: never since the streams were last cleared).
+    cycle: Option<u64>,
+    /// Its receive time (s).
+    time: f64,
+}
+
+impl Arrival {
+    fn set(&mut self, cycle: u64, t: f64) {
+        self.cycle = Some(cycle);
+        self.time = t;
+    }
+}
+
+/// One wheel's feedback, as three streams: steering (angle, rate), rolling (wheel speed) and
+/// leg (extension, rate). The native profile fills steering and rolling from one frame
+/// (FEEDBACK_A), the CiA 402 profile from two drives.
 #[derive(Clone, Copy, Debug, Default)]
 struct WheelFeedback {
-    a: Option<FeedbackA>,
-    b: Option<FeedbackB>,
-    a_cycle: Option<u64>,
-    /// Rolling counter of `a`: one step per SYNC the module answered.
-    a_counter: u8,
-    /// Whether `a` arrived after the SYNC of the cycle it arrived in (not a late answer).
-    a_on_time: bool,
-    /// The FEEDBACK_A before `a`, with its rolling counter, arrival cycle and punctuality:
-    /// for the encoder-jump check.
-    prev_a: Option<(FeedbackA, u8, u64, bool)>,
-    /// `a` arrived since the last encoder-jump check.
-    a_fresh: bool,
-    b_cycle: Option<u64>,
-    a_time: f64,
-    b_time: f64,
-    state: Option<ModuleState>,
-    fault_code: u8,
+    steer: Option<(f64, f64)>,
+    steer_at: Arrival,
+    /// Sequence number of `steer`: one step per SYNC the device answered.
+    steer_seq: u8,
+    /// Whether `steer` arrived after the SYNC of the cycle it arrived in (not a late answer).
+    steer_on_time: bool,
+    /// The steering sample before `steer`, with its sequence number, arrival cycle and
+    /// punctuality: for the encoder-jump check.
+    prev_steer: Option<((f64, f64), u8, u64, bool)>,
+    /// `steer` arrived since the last encoder-jump check.
+    steer_fresh: bool,
+    drive: Option<f64>,
+    drive_at: Arrival,
+    leg: Option<(f64, f64)>,
+    leg_at: Arrival,
 }
 
 /// Cycles after [`CycleCore::arm`] whose SETPOINTs carry `fault_reset`.
@@ -212,8 +229,14 @@ pub struct CycleCore {
     cfg: RuntimeConfig,
     n: usize,
     nodes: [u8; MAX_WHEELS],
-    node_to_wheel: [Option<usize>; 16],
-    rx: Receiver,
+    link: Link,
+    /// An arm was asked for while the link was not ready (CiA 402 devices booting).
+    arm_pending: bool,
+    /// Cycle the supervisor was last armed in: the age of a stream that never delivered.
+    armed_cycle: u64,
+    /// Latest time passed in (s).
+    now: f64,
+    setpoints: [Setpoint; MAX_WHEELS],
     odom: Odometry,
     sup: Supervisor,
     controller: Box<dyn TrackingController + Send>,
@@ -225,8 +248,6 @@ pub struct CycleCore {
     trajectory: Box<dyn Trajectory>,
     fb: [WheelFeedback; MAX_WHEELS],
     cycle: u64,
-    sync_counter: u8,
-    setpoint_counter: [u8; MAX_WHEELS],
     last_cmd: Command,
     track_start_cycle: Option<u64>,
     record: CycleRecord,
@@ -237,20 +258,6 @@ pub struct CycleCore {
     sync_time: f64,
     rejected_this_cycle: u32,
     wheel_xy: [[f64; 2]; MAX_WHEELS],
-}
-
-fn rx_error_kind(e: &RxError) -> &'static str {
-    match e {
-        RxError::RepeatedCounter { .. } => "repeated_counter",
-        RxError::SkippedCounter { .. } => "skipped_counter",
-        RxError::Decode(d) => match d {
-            DecodeError::UnknownId { .. } => "unknown_id",
-            DecodeError::BadCrc { .. } => "bad_crc",
-            DecodeError::WrongDlc { .. } => "wrong_dlc",
-            DecodeError::OutOfRange { .. } => "out_of_range",
-            _ => "invalid",
-        },
-    }
 }
 
 impl CycleCore {
@@ -269,11 +276,14 @@ impl CycleCore {
             });
         }
         check_feasible(&platform, trajectory.as_ref())?;
+        let link = Link::new(&platform, cfg.counter_policy);
         let mut nodes = [0u8; MAX_WHEELS];
-        let mut node_to_wheel = [None; 16];
-        for (i, w) in platform.wheels.iter().enumerate() {
-            nodes[i] = w.node;
-            node_to_wheel[w.node as usize & 15] = Some(i);
+        let mut steer_nodes = [0u8; MAX_WHEELS];
+        let mut leg_nodes = [0u8; MAX_WHEELS];
+        for i in 0..n.min(MAX_WHEELS) {
+            nodes[i] = link.wheel_node(i);
+            steer_nodes[i] = link.stream_node(i, Role::Steer);
+            leg_nodes[i] = link.stream_node(i, Role::Leg);
         }
         let r0 = trajectory.sample(0.0);
         let start = r0.pose();
@@ -282,8 +292,8 @@ impl CycleCore {
             ControllerKind::Kinematic => Box::new(KinematicController::new(&platform)),
         };
         let avoidance = cfg.avoidance.map(|a| Avoidance::new(&platform, a));
-        let sup = Supervisor::new(&platform, cfg.supervisor);
-        let rx = Receiver::with_policy(cfg.counter_policy);
+        let mut sup = Supervisor::new(&platform, cfg.supervisor);
+        sup.set_stream_nodes(steer_nodes, leg_nodes);
         let mut record = CycleRecord::new(0, 0.0, n);
         record.nodes = nodes;
         let mut legs = [0.0; MAX_WHEELS];
@@ -293,8 +303,11 @@ impl CycleCore {
             fault_reset_cycles: 0,
             n,
             nodes,
-            node_to_wheel,
-            rx,
+            link,
+            arm_pending: false,
+            armed_cycle: 0,
+            now: 0.0,
+            setpoints: [Setpoint::default(); MAX_WHEELS],
             odom: Odometry::new(start),
             sup,
             controller,
@@ -304,8 +317,6 @@ impl CycleCore {
             trajectory,
             fb: [WheelFeedback::default(); MAX_WHEELS],
             cycle: 0,
-            sync_counter: 0,
-            setpoint_counter: [0; MAX_WHEELS],
             last_cmd: Command::zero(n),
             track_start_cycle: None,
             record,
@@ -336,9 +347,20 @@ impl CycleCore {
         &self.sup
     }
 
-    /// Receive statistics (accepted and rejected frames by kind).
+    /// Receive statistics (accepted and rejected frames by kind; see
+    /// [`Link::rx_stats`] for the CiA 402 profile's mapping).
     pub fn rx_stats(&self) -> &rollbase_driver::rx::RxStats {
-        self.rx.stats()
+        self.link.rx_stats()
+    }
+
+    /// The wire side of the cycle (e.g. the CiA 402 master's devices, for reports).
+    pub fn link(&self) -> &Link {
+        &self.link
+    }
+
+    /// True while an arm waits for the link (CiA 402 devices still booting).
+    pub fn arm_pending(&self) -> bool {
+        self.arm_pending
     }
 
     /// Cycles run so far.
@@ -359,6 +381,11 @@ impl CycleCore {
     /// and the module states cached from earlier STATUS frames are forgotten: only a STATUS
     /// sent after the re-arm can fault the platform again. A fault that persists is reported
     /// again by the module and faults the platform again.
+    ///
+    /// With the CiA 402 profile the master first boots (again) every device that is not
+    /// running and clears the devices' latched faults ([`Link::rearm`]); the supervisor arms
+    /// when all devices run ([`CycleCore::arm_pending`] until then), or faults naming the
+    /// device when one cannot be booted. Returns false when the state does not allow arming.
     pub fn arm(&mut self) -> bool {
         if !matches!(
             self.sup.state(),
@@ -366,15 +393,28 @@ impl CycleCore {
         ) {
             return false;
         }
-        self.fault_reset_cycles = FAULT_RESET_CYCLES + 1;
-        for fb in self.fb.iter_mut() {
-            fb.state = None;
-            fb.fault_code = 0;
-        }
+        self.link.rearm(self.now);
         self.stop_requested = false;
         self.bus_error = false;
         self.done_cycles = 0;
         self.track_start_cycle = None;
+        if self.link.ready() {
+            self.arm_now()
+        } else {
+            self.arm_pending = true;
+            true
+        }
+    }
+
+    fn arm_now(&mut self) -> bool {
+        self.arm_pending = false;
+        self.fault_reset_cycles = FAULT_RESET_CYCLES + 1;
+        self.armed_cycle = self.cycle;
+        if matches!(self.link, Link::Cia402(_)) {
+            // Devices may have been rebooted to get here: samples from before are not
+            // evidence of anything now, and the streams' ages count from the arm.
+            self.fb = [WheelFeedback::default(); MAX_WHEELS];
+        }
         self.sup.arm()
     }
 
@@ -394,24 +434,20 @@ impl CycleCore {
         self.done_cycles >= self.cfg.linger_cycles
     }
 
-    /// Starts cycle `k` at time `t` (s): returns the SYNC frame to send first.
-    pub fn start_cycle(&mut self, t: f64) -> CanFrame {
+    /// Starts the cycle at time `t` (s): writes the frames to send now into `out` (cleared
+    /// first), SYNC first; with the CiA 402 profile NMT commands, the master's heartbeat and
+    /// SDO requests follow when due.
+    pub fn start_cycle(&mut self, t: f64, out: &mut FrameBuf) {
         let mut rec = CycleRecord::new(self.cycle, t, self.n);
         rec.nodes = self.nodes;
         self.record = rec;
         self.rejected_this_cycle = 0;
-        let msg = Message {
-            node: 0,
-            counter: self.sync_counter,
-            payload: Payload::Sync(Sync {
-                cycle: (self.cycle & 0xFFFF) as u16,
-            }),
-        };
-        self.sync_counter = (self.sync_counter + 1) & 0x0F;
-        // SYNC always encodes (node 0, counter < 16, raw cycle).
-        let frame = encode(&msg).unwrap_or_else(|_| blank_frame());
-        self.push_tx(t, &frame);
-        frame
+        self.now = t;
+        out.clear();
+        self.link.start_cycle(self.cycle, t, out);
+        for &f in out.as_slice() {
+            self.push_tx(t, &f);
+        }
     }
 
     fn push_tx(&mut self, t: f64, f: &CanFrame) {
@@ -434,12 +470,13 @@ impl CycleCore {
         let mut data = [0u8; 8];
         data[..frame.len()].copy_from_slice(frame.data());
         self.record.timing.frames_in += 1;
-        let result = self.rx.accept(frame);
+        self.now = self.now.max(t);
+        let result = self.link.on_frame(frame, t);
         let error = match &result {
             Ok(_) => None,
-            Err(e) => {
+            Err(kind) => {
                 self.rejected_this_cycle += 1;
-                Some(rx_error_kind(e))
+                Some(*kind)
             }
         };
         self.record.push_rx(FrameRecord {
@@ -449,74 +486,108 @@ impl CycleCore {
             data,
             error,
         });
-        let Ok(msg) = result else { return };
-        let Some(w) = self.node_to_wheel.get(msg.node as usize).copied().flatten() else {
-            return;
-        };
-        if w >= self.n {
-            return;
-        }
-        let fb = &mut self.fb[w];
-        match msg.payload {
-            Payload::FeedbackA(a) => {
-                if let (Some(old), Some(c)) = (fb.a, fb.a_cycle) {
-                    fb.prev_a = Some((old, fb.a_counter, c, fb.a_on_time));
+        let Ok(updates) = result else { return };
+        let cycle = self.cycle;
+        let on_time = t >= self.sync_time;
+        for u in updates.iter() {
+            match u {
+                Update::Steer {
+                    wheel,
+                    angle,
+                    rate,
+                    seq,
+                } if wheel < self.n => {
+                    let fb = &mut self.fb[wheel];
+                    if let (Some(old), Some(c)) = (fb.steer, fb.steer_at.cycle) {
+                        fb.prev_steer = Some((old, fb.steer_seq, c, fb.steer_on_time));
+                    }
+                    fb.steer_seq = seq;
+                    fb.steer_on_time = on_time;
+                    fb.steer_fresh = true;
+                    fb.steer = Some((angle, rate));
+                    fb.steer_at.set(cycle, t);
                 }
-                fb.a_counter = msg.counter;
-                fb.a_on_time = t >= self.sync_time;
-                fb.a_fresh = true;
-                fb.a = Some(a);
-                fb.a_cycle = Some(self.cycle);
-                fb.a_time = t;
+                Update::Drive { wheel, speed } if wheel < self.n => {
+                    let fb = &mut self.fb[wheel];
+                    fb.drive = Some(speed);
+                    fb.drive_at.set(cycle, t);
+                }
+                Update::Leg { wheel, leg, rate } if wheel < self.n => {
+                    let fb = &mut self.fb[wheel];
+                    fb.leg = Some((leg, rate));
+                    fb.leg_at.set(cycle, t);
+                }
+                _ => {}
             }
-            Payload::FeedbackB(b) => {
-                fb.b = Some(b);
-                fb.b_cycle = Some(self.cycle);
-                fb.b_time = t;
-            }
-            Payload::Status(s) => {
-                fb.state = Some(s.state);
-                fb.fault_code = s.fault_code;
-            }
-            _ => {}
         }
     }
 
-    fn measurement(&self) -> (Measurement, [u32; MAX_WHEELS], [u32; MAX_WHEELS], f64) {
+    /// The latest measurement, the data age and module age of every wheel (cycles), the
+    /// node of each wheel's oldest stream, and the receive time of the oldest wheel's
+    /// newest sample.
+    #[allow(clippy::type_complexity)]
+    fn measurement(
+        &self,
+    ) -> (
+        Measurement,
+        [u32; MAX_WHEELS],
+        [u32; MAX_WHEELS],
+        [u8; MAX_WHEELS],
+        f64,
+    ) {
         let mut m = Measurement {
             n: self.n,
             ..Default::default()
         };
         let mut age = [0u32; MAX_WHEELS];
         let mut alive = [0u32; MAX_WHEELS];
+        let mut stale_node = [0u8; MAX_WHEELS];
         let mut oldest = f64::NEG_INFINITY;
+        // A stream that never delivered since the arm is as old as the arm.
+        let never = self.cycle - self.armed_cycle.min(self.cycle) + 1;
         #[allow(clippy::needless_range_loop)] // parallel per-wheel arrays
         for i in 0..self.n {
             let fb = &self.fb[i];
-            if let Some(a) = fb.a {
-                m.wheels[i].steer_angle = a.steer_angle;
-                m.wheels[i].steer_rate = a.steer_rate;
-                m.wheels[i].wheel_speed = a.wheel_speed;
+            if let Some((angle, rate)) = fb.steer {
+                m.wheels[i].steer_angle = angle;
+                m.wheels[i].steer_rate = rate;
             }
-            if let Some(b) = fb.b {
-                m.wheels[i].leg = b.leg_extension;
-                m.wheels[i].leg_rate = b.leg_rate;
+            if let Some(w) = fb.drive {
+                m.wheels[i].wheel_speed = w;
+            }
+            if let Some((leg, rate)) = fb.leg {
+                m.wheels[i].leg = leg;
+                m.wheels[i].leg_rate = rate;
             } else {
                 m.wheels[i].leg = self.platform.wheels[i].lambda_nominal;
             }
-            let ca = fb.a_cycle.map_or(self.cycle + 1, |c| self.cycle - c);
-            let cb = fb.b_cycle.map_or(self.cycle + 1, |c| self.cycle - c);
-            // Data age: the older of the two feedback streams (what the controller uses).
-            age[i] = ca.max(cb).min(u32::MAX as u64) as u32;
-            // Module age: the newer of the two; a module is silent only when neither
-            // FEEDBACK_A nor FEEDBACK_B arrived (random loss of one frame is not silence).
-            alive[i] = ca.min(cb).min(u32::MAX as u64) as u32;
-            let newest = fb.a_time.min(fb.b_time);
+            let age_of = |a: &Arrival| a.cycle.map_or(never, |c| self.cycle - c);
+            let streams = [
+                (age_of(&fb.steer_at), Role::Steer),
+                (age_of(&fb.drive_at), Role::Drive),
+                (age_of(&fb.leg_at), Role::Leg),
+            ];
+            let (oldest_age, oldest_role) =
+                streams.iter().copied().fold((0u64, Role::Steer), |acc, s| {
+                    if s.0 > acc.0 {
+                        s
+                    } else {
+                        acc
+                    }
+                });
+            // Data age: the oldest stream (what the controller uses).
+            age[i] = oldest_age.min(u64::from(u32::MAX)) as u32;
+            stale_node[i] = self.link.stream_node(i, oldest_role);
+            // Module age: the newest stream; a wheel is silent only when none of its streams
+            // delivered (random loss of one frame is not silence).
+            let newest_age = streams.iter().map(|s| s.0).min().unwrap_or(never);
+            alive[i] = newest_age.min(u64::from(u32::MAX)) as u32;
+            let newest = fb.steer_at.time.min(fb.drive_at.time).min(fb.leg_at.time);
             if oldest == f64::NEG_INFINITY || newest < oldest {
                 oldest = newest;
             }
         }
-        (m, age, alive, oldest)
+        (m, age, alive, stale_node, oldest)
     }
 
     fn reference_time(&self) -> f64 {
@@ -526,12 +597,27 @@ impl CycleCore {
         }
     }
 
-    /// Runs the control step at time `t` (s) and writes the setpoint frames into `out`;
+    /// Runs the control step at time `t` (s) and writes the setpoint frames into `out`
+    /// (cleared first; with the CiA 402 profile SDO requests that became due follow);
     /// returns how many were written. The cycle's record is then available from
     /// [`CycleCore::record`].
-    pub fn finish_cycle(&mut self, t: f64, out: &mut [CanFrame; MAX_WHEELS]) -> usize {
+    pub fn finish_cycle(&mut self, t: f64, out: &mut FrameBuf) -> usize {
         let dt = self.platform.dt();
-        let (meas, age, alive, oldest_fb) = self.measurement();
+        self.now = self.now.max(t);
+        if self.arm_pending {
+            if let Some((wheel, node, role, fault)) = self.link.boot_failure() {
+                self.arm_pending = false;
+                self.sup.fail(FaultReason::DeviceFault {
+                    wheel,
+                    node,
+                    role,
+                    fault,
+                });
+            } else if self.link.ready() {
+                self.arm_now();
+            }
+        }
+        let (meas, age, alive, stale_node, oldest_fb) = self.measurement();
         for (i, w) in meas.wheels[..self.n].iter().enumerate() {
             self.wheel_xy[i] = {
                 let a = self.platform.wheels[i].alpha;
@@ -569,7 +655,7 @@ impl CycleCore {
         // Alignment and the start check need every module's feedback at least once.
         let reported = self.fb[..self.n]
             .iter()
-            .all(|f| f.a.is_some() && f.b.is_some());
+            .all(|f| f.steer.is_some() && f.drive.is_some() && f.leg.is_some());
         let start_legs = if reported {
             let r0 = self.trajectory.sample(0.0);
             let mut worst = (0usize, meas.wheels[0].leg, r0.z[3]);
@@ -585,28 +671,30 @@ impl CycleCore {
         };
         // Encoder jump: two readings sampled one SYNC apart must differ in steering angle by
         // what the trapezoid of their measured steering rates predicts. The spacing is only
-        // certain when the module's counter advanced by one (no lost answer), the two arrived
-        // in consecutive cycles (no lost SYNC, which the counter cannot show: a module that
+        // certain when the sample sequence advanced by one (native: the module's rolling
+        // counter, no lost answer; CiA 402: the count of the drive's TPDOs), the two arrived
+        // in consecutive cycles (no lost SYNC, which the counter cannot show: a device that
         // saw no SYNC sends nothing) and both arrived after their own cycle's SYNC (neither is
         // a late answer to the SYNC before). Other pairs are not checked.
         let mut steer_jump = [0.0; MAX_WHEELS];
         for (i, j) in steer_jump.iter_mut().enumerate().take(self.n) {
             let fb = &mut self.fb[i];
-            if let (true, Some(a), Some(c), Some((pa, pk, pc, p_on_time))) =
-                (fb.a_fresh, fb.a, fb.a_cycle, fb.prev_a)
+            if let (true, Some((a, ar)), Some(c), Some(((pa, par), pk, pc, p_on_time))) =
+                (fb.steer_fresh, fb.steer, fb.steer_at.cycle, fb.prev_steer)
             {
-                let k = fb.a_counter.wrapping_sub(pk) & 0x0F;
-                if k == 1 && pc + 1 == c && p_on_time && fb.a_on_time {
-                    let predicted = pa.steer_angle + 0.5 * (pa.steer_rate + a.steer_rate) * dt;
-                    *j = crate::angle::diff(a.steer_angle, predicted);
+                let k = fb.steer_seq.wrapping_sub(pk) & 0x0F;
+                if k == 1 && pc + 1 == c && p_on_time && fb.steer_on_time {
+                    let predicted = pa + 0.5 * (par + ar) * dt;
+                    *j = crate::angle::diff(a, predicted);
                 }
             }
-            fb.a_fresh = false;
+            fb.steer_fresh = false;
         }
         let mut sup_in = SupervisorInput {
             steer_jump,
             feedback_age: alive,
             data_age: age,
+            stale_node,
             alignment_error: if reported { align_err } else { f64::INFINITY },
             start_legs,
             bus_error: self.bus_error,
@@ -617,8 +705,12 @@ impl CycleCore {
         for i in 0..self.n {
             sup_in.wheel_speed[i] = meas.wheels[i].wheel_speed;
             sup_in.steer_rate[i] = meas.wheels[i].steer_rate;
-            if self.fb[i].state == Some(ModuleState::Fault) {
-                sup_in.module_fault[i] = Some(self.fb[i].fault_code);
+            match self.link.wheel_fault(i) {
+                Some(WheelFault::Module { code, .. }) => sup_in.module_fault[i] = Some(code),
+                Some(WheelFault::Device { node, role, fault }) => {
+                    sup_in.device_fault[i] = Some((node, role, fault))
+                }
+                None => {}
             }
         }
 
@@ -694,7 +786,10 @@ impl CycleCore {
             self.sup.state(),
             SupervisorState::Stopped | SupervisorState::Fault
         ) || (self.sup.state() == SupervisorState::Idle && self.stop_requested);
-        let last_cycle = settling && self.done_cycles + 1 >= self.cfg.linger_cycles;
+        // With synchronous RPDOs (CiA 402) a controlword acts at the next SYNC: the drives are
+        // told to disable for as many cycles before the end as the link needs.
+        let lead = self.link.disable_lead_cycles();
+        let last_cycle = settling && self.done_cycles + lead >= self.cfg.linger_cycles;
         let (cmd, enable, brake, mode_name) = match mode {
             Mode::Disabled => (Command::zero(self.n), false, false, "disabled"),
             Mode::Align => (align_cmd, true, false, "align"),
@@ -725,13 +820,12 @@ impl CycleCore {
             (enable, mode_name)
         };
 
-        let mut k = 0;
         // A re-arm asks the modules to clear latched faults (e.g. their setpoint watchdog
-        // after the bus was gone) in the SETPOINTs of the next few cycles.
+        // after the bus was gone) in the setpoints of the next few cycles.
         self.fault_reset_cycles = self.fault_reset_cycles.saturating_sub(1);
         for i in 0..self.n {
             let c = cmd.wheels[i];
-            let sp = Setpoint {
+            self.setpoints[i] = Setpoint {
                 wheel_speed: c.wheel_speed,
                 steer_rate: c.steer_rate,
                 flags: SetpointFlags {
@@ -740,41 +834,11 @@ impl CycleCore {
                     fault_reset: self.fault_reset_cycles > 0,
                 },
             };
-            let msg = Message {
-                node: self.nodes[i],
-                counter: self.setpoint_counter[i],
-                payload: Payload::Setpoint(sp),
-            };
-            let frame = match encode(&msg) {
-                Ok(f) => f,
-                Err(_) => {
-                    // Not representable on the wire (beyond the protocol range): never clamp one
-                    // wheel silently; send a braking zero setpoint for this wheel and let the
-                    // supervisor's limit check stop the platform.
-                    let safe = Message {
-                        payload: Payload::Setpoint(Setpoint {
-                            wheel_speed: 0.0,
-                            steer_rate: 0.0,
-                            flags: SetpointFlags {
-                                enable,
-                                brake: true,
-                                fault_reset: false,
-                            },
-                        }),
-                        ..msg
-                    };
-                    match encode(&safe) {
-                        Ok(f) => f,
-                        Err(_) => continue,
-                    }
-                }
-            };
-            self.setpoint_counter[i] = (self.setpoint_counter[i] + 1) & 0x0F;
-            out[k] = frame;
-            k += 1;
         }
-        for f in out.iter().take(k) {
-            let f = *f;
+        out.clear();
+        self.link.finish_cycle(t, &self.setpoints[..self.n], out);
+        let k = out.len();
+        for &f in out.as_slice() {
             self.push_tx(t, &f);
         }
         self.last_cmd = cmd;
@@ -795,7 +859,7 @@ impl CycleCore {
         r.measurement = meas;
         r.feedback_age = age;
         for i in 0..self.n {
-            r.module_state[i] = self.fb[i].state.map_or(255, |s| s.to_raw());
+            r.module_state[i] = self.link.wheel_state(i).map_or(255, |s| s.to_raw());
         }
         r.nominal = nominal;
         r.reference = reference;
@@ -809,7 +873,7 @@ impl CycleCore {
         r.wheel_xy = self.wheel_xy;
         r.state = self.sup.state();
         r.reason = self.sup.reason();
-        r.timing.frames_out = r.n_tx as u32;
+        r.timing.frames_out = r.n_tx_total;
         r.timing.rejected = self.rejected_this_cycle;
         r.timing.feedback_age_us = if oldest_fb.is_finite() {
             ((t - oldest_fb) * 1e6).max(0.0)
@@ -829,12 +893,6 @@ impl CycleCore {
     pub fn record_mut(&mut self) -> &mut CycleRecord {
         &mut self.record
     }
-}
-
-/// An empty frame with id 0, used to initialise frame buffers.
-fn blank_frame() -> CanFrame {
-    // Id 0 with no data is always a valid classic frame.
-    CanFrame::new(0, &[]).unwrap_or_else(|_| unreachable!("id 0, len 0 is a valid frame"))
 }
 
 fn command_finite(c: &Command) -> bool {
@@ -981,7 +1039,7 @@ pub struct LockstepState {
     period: f64,
     window: f64,
     pending: Vec<(Duration, CanFrame)>,
-    out: [CanFrame; MAX_WHEELS],
+    out: FrameBuf,
     rx_buf: Vec<(f64, CanFrame)>,
     /// Frames the controller lost because its interface was down.
     pub lost_iface_down: u64,
@@ -996,7 +1054,7 @@ impl LockstepState {
             period,
             window: core.cfg.feedback_window.clamp(0.0, period),
             pending: Vec::with_capacity(64),
-            out: [blank_frame(); MAX_WHEELS],
+            out: FrameBuf::new(),
             rx_buf: Vec::with_capacity(64),
             lost_iface_down: 0,
         }
@@ -1074,10 +1132,12 @@ pub fn lockstep_cycle(
     };
     if !hooks.controller_silent {
         around(true);
-        let sync = core.start_cycle(t0.as_secs_f64());
+        core.start_cycle(t0.as_secs_f64(), &mut st.out);
         around(false);
-        if hooks.iface_down || bus.controller_send(&sync).is_err() {
-            core.report_bus_error();
+        for f in st.out.as_slice() {
+            if hooks.iface_down || bus.controller_send(f).is_err() {
+                core.report_bus_error();
+            }
         }
     }
     deliver_to_peer(bus, peer);
@@ -1119,9 +1179,9 @@ pub fn lockstep_cycle(
     for (t, f) in &st.rx_buf {
         core.on_frame(f, *t);
     }
-    let m = core.finish_cycle(t_win.as_secs_f64(), &mut st.out);
+    core.finish_cycle(t_win.as_secs_f64(), &mut st.out);
     around(false);
-    for f in st.out.iter().take(m) {
+    for f in st.out.as_slice() {
         if hooks.iface_down || bus.controller_send(f).is_err() {
             core.report_bus_error();
         }
@@ -1275,6 +1335,24 @@ fn drain(bus: &mut dyn CanBus, core: &mut CycleCore, t: f64, report: &mut Realti
     }
 }
 
+/// Sends every frame of `out`; a non-retryable error is reported to the core (bus-error
+/// fault), a retryable one drops that frame.
+fn send_all(
+    bus: &mut dyn CanBus,
+    core: &mut CycleCore,
+    out: &FrameBuf,
+    report: &mut RealtimeReport,
+) {
+    for f in out.as_slice() {
+        if let Err(e) = bus.send(f) {
+            if !e.is_retryable() {
+                core.report_bus_error();
+                report.bus_errors += 1;
+            }
+        }
+    }
+}
+
 /// Tries SCHED_FIFO and mlockall as asked; returns one line per attempt for the operator.
 pub fn realtime_setup(opts: &RealtimeOptions) -> Vec<String> {
     let mut out = Vec::new();
@@ -1330,7 +1408,7 @@ pub fn run_realtime(
     let period_ns = (core.platform().dt() * 1e9).round() as i128;
     let window_ns = (core.cfg.feedback_window * 1e9).round() as i128;
     let start = ts_ns(&monotonic_now()) + period_ns;
-    let mut out = [blank_frame(); MAX_WHEELS];
+    let mut out = FrameBuf::new();
     let mut prev_wake: Option<i128> = None;
     let mut stop_sent = false;
     core.arm();
@@ -1350,32 +1428,21 @@ pub fn run_realtime(
             core.request_stop();
             stop_sent = true;
         }
-        let sync = core.start_cycle(td);
         // Answers that arrived after the last window belong to the previous SYNC: hand them
-        // over now, stamped just before this SYNC, so they count as late (not as this
-        // cycle's samples). Then SYNC, one sleep to the window's end, one drain: two wake-ups
-        // a cycle instead of one per frame (the cycle waits for the window's end anyway).
+        // over first, stamped just before this SYNC, so they count as late (not as this
+        // cycle's samples). Then SYNC (and whatever else is due at the cycle start), one sleep
+        // to the window's end, one drain: two wake-ups a cycle instead of one per frame (the
+        // cycle waits for the window's end anyway).
+        core.start_cycle(td, &mut out);
         drain(bus, core, td - 1e-6, &mut report);
-        if let Err(e) = bus.send(&sync) {
-            if !e.is_retryable() {
-                core.report_bus_error();
-                report.bus_errors += 1;
-            }
-        }
+        send_all(bus, core, &out, &mut report);
         sleep_until(deadline + window_ns);
         let now_rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
         drain(bus, core, now_rt, &mut report);
         let collected = ts_ns(&monotonic_now());
         let tw = (collected - start) as f64 * 1e-9;
-        let m = core.finish_cycle(tw, &mut out);
-        for f in out.iter().take(m) {
-            if let Err(e) = bus.send(f) {
-                if !e.is_retryable() {
-                    core.report_bus_error();
-                    report.bus_errors += 1;
-                }
-            }
-        }
+        core.finish_cycle(tw, &mut out);
+        send_all(bus, core, &out, &mut report);
         let done_ns = ts_ns(&monotonic_now());
         let miss = done_ns > deadline + period_ns;
         if miss {

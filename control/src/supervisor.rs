@@ -22,6 +22,8 @@
 
 use crate::platform::Platform;
 use crate::types::{Command, MAX_WHEELS};
+use rollbase_driver::canopen::config::Role;
+use rollbase_driver::canopen::master::DeviceFault;
 
 /// Supervisor states (DESIGN.md "The 250 Hz cycle").
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -74,6 +76,18 @@ pub enum FaultReason {
         node: u8,
         /// Fault code from STATUS.
         code: u8,
+    },
+    /// A CANopen device of a wheel (CiA 402 profile) reported a fault, stopped answering,
+    /// left operational or could not be booted.
+    DeviceFault {
+        /// Wheel index.
+        wheel: usize,
+        /// Node-ID of the device.
+        node: u8,
+        /// Which device of the wheel.
+        role: Role,
+        /// What happened.
+        fault: DeviceFault,
     },
     /// A measured or commanded quantity exceeded its limit.
     LimitBreach {
@@ -150,6 +164,16 @@ impl std::fmt::Display for FaultReason {
             Self::ModuleFault { wheel, node, code } => write!(
                 f,
                 "module fault: wheel {} (node {node}) reports fault code {code}",
+                wheel + 1
+            ),
+            Self::DeviceFault {
+                wheel,
+                node,
+                role,
+                fault,
+            } => write!(
+                f,
+                "device fault: wheel {} {role} (node {node}): {fault}",
                 wheel + 1
             ),
             Self::LimitBreach {
@@ -260,6 +284,11 @@ pub struct SupervisorInput {
     pub data_age: [u32; MAX_WHEELS],
     /// Fault code per wheel from its latest STATUS (`None` = no fault).
     pub module_fault: [Option<u8>; MAX_WHEELS],
+    /// Per wheel, a latched fault of one of its CANopen devices as (node, role, fault).
+    pub device_fault: [Option<(u8, Role, DeviceFault)>; MAX_WHEELS],
+    /// Per wheel, the node of its oldest feedback stream (named by a stale-feedback fault);
+    /// 0 = the wheel's node.
+    pub stale_node: [u8; MAX_WHEELS],
     /// Measured wheel spin rates (rad/s).
     pub wheel_speed: [f64; MAX_WHEELS],
     /// Measured steering rates (rad/s).
@@ -306,6 +335,8 @@ pub struct Supervisor {
     cfg: SupervisorConfig,
     n: usize,
     nodes: [u8; MAX_WHEELS],
+    steer_nodes: [u8; MAX_WHEELS],
+    leg_nodes: [u8; MAX_WHEELS],
     state: SupervisorState,
     reason: Option<FaultReason>,
     cycles_in_state: u32,
@@ -324,12 +355,28 @@ impl Supervisor {
             cfg,
             n: p.n().min(MAX_WHEELS),
             nodes,
+            steer_nodes: nodes,
+            leg_nodes: nodes,
             state: SupervisorState::Idle,
             reason: None,
             cycles_in_state: 0,
             slip_count: 0,
             transitions: 0,
         }
+    }
+
+    /// The nodes that deliver each wheel's steering angle and leg extension, when they are
+    /// not the wheel's module (CiA 402: the steering drive and the leg encoder): encoder-jump
+    /// and start-mismatch faults name them.
+    pub fn set_stream_nodes(&mut self, steer: [u8; MAX_WHEELS], leg: [u8; MAX_WHEELS]) {
+        self.steer_nodes = steer;
+        self.leg_nodes = leg;
+    }
+
+    /// Enters Fault for a reason found outside the cycle's checks (a device that cannot be
+    /// booted), from any state; the first reason is kept until re-armed.
+    pub fn fail(&mut self, reason: FaultReason) {
+        self.fault(reason);
     }
 
     /// Current state.
@@ -387,17 +434,21 @@ impl Supervisor {
             return Some(FaultReason::BusError);
         }
         for i in 0..self.n {
+            let node = match input.stale_node[i] {
+                0 => self.nodes[i],
+                n => n,
+            };
             if input.feedback_age[i] > self.cfg.stale_cycles {
                 return Some(FaultReason::StaleFeedback {
                     wheel: i,
-                    node: self.nodes[i],
+                    node,
                     cycles: input.feedback_age[i],
                 });
             }
             if input.data_age[i] > self.cfg.stale_data_cycles {
                 return Some(FaultReason::StaleFeedback {
                     wheel: i,
-                    node: self.nodes[i],
+                    node,
                     cycles: input.data_age[i],
                 });
             }
@@ -410,13 +461,21 @@ impl Supervisor {
                     code,
                 });
             }
+            if let Some((node, role, fault)) = input.device_fault[i] {
+                return Some(FaultReason::DeviceFault {
+                    wheel: i,
+                    node,
+                    role,
+                    fault,
+                });
+            }
         }
         for i in 0..self.n {
             let j = input.steer_jump[i];
             if j.abs() > self.cfg.steer_jump_threshold {
                 return Some(FaultReason::EncoderJump {
                     wheel: i,
-                    node: self.nodes[i],
+                    node: self.steer_nodes[i],
                     jump: j,
                 });
             }
@@ -487,7 +546,7 @@ impl Supervisor {
                     if dev.is_nan() || dev > self.cfg.start_leg_tolerance {
                         self.fault(FaultReason::StartMismatch {
                             wheel,
-                            node: self.nodes[wheel.min(MAX_WHEELS - 1)],
+                            node: self.leg_nodes[wheel.min(MAX_WHEELS - 1)],
                             measured,
                             expected,
                         });

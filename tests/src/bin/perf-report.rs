@@ -495,8 +495,7 @@ fn lockstep_breakdown(p: &Platform) -> Result<([f64; 4], u64), String> {
     let mut sim = Simulator::new(p, PlantConfig::default(), FaultSchedule::default(), &r0, 1)
         .map_err(|e| e.to_string())?;
     let mut bus = VirtualLockstepBus::new(FaultModel::none(), 1);
-    let blank = CanFrame::new(0, &[]).map_err(|e| e.to_string())?;
-    let mut out = [blank; rollbase_control::MAX_WHEELS];
+    let mut out = rollbase_driver::frame::FrameBuf::new();
     let mut pending: Vec<(Duration, CanFrame)> = Vec::with_capacity(64);
     let mut rx: Vec<(f64, CanFrame)> = Vec::with_capacity(64);
     let mut got = Vec::with_capacity(64);
@@ -514,10 +513,12 @@ fn lockstep_breakdown(p: &Platform) -> Result<([f64; 4], u64), String> {
         bus.set_time(t0);
         t_bus += a.elapsed().as_secs_f64();
         let a = Instant::now();
-        let sync = core.start_cycle(t0.as_secs_f64());
+        core.start_cycle(t0.as_secs_f64(), &mut out);
         t_core += a.elapsed().as_secs_f64();
         let a = Instant::now();
-        let _ = bus.controller_send(&sync);
+        for f in out.as_slice() {
+            let _ = bus.controller_send(f);
+        }
         got.clear();
         while let Ok(Some(f)) = bus.peer_recv() {
             got.push(f);
@@ -546,10 +547,10 @@ fn lockstep_breakdown(p: &Platform) -> Result<([f64; 4], u64), String> {
         for (t, f) in &rx {
             core.on_frame(f, *t);
         }
-        let m = core.finish_cycle(tw.as_secs_f64(), &mut out);
+        core.finish_cycle(tw.as_secs_f64(), &mut out);
         t_core += a.elapsed().as_secs_f64();
         let a = Instant::now();
-        for f in out.iter().take(m) {
+        for f in out.as_slice() {
             let _ = bus.controller_send(f);
         }
         got.clear();

@@ -1,0 +1,455 @@
+//! The wire side of the cycle, one value per protocol profile: what goes out at the start
+//! and at the end of a cycle, and how a received frame becomes feedback.
+//!
+//! The cycle core ([`crate::runtime::CycleCore`]) is profile-neutral: it keeps three
+//! feedback streams per wheel (steering: angle and rate; rolling: wheel speed; leg:
+//! extension and rate) with their arrival cycle and time, and hands every wheel's
+//! [`Setpoint`] (SI, enable / brake / fault-reset flags) to the link. The link does the rest:
+//!
+//! | | native ([`rollbase_driver::protocol`]) | CiA 402 ([`rollbase_driver::canopen`]) |
+//! |---|---|---|
+//! | start of cycle | SYNC (cycle counter, rolling counter, CRC) | SYNC, then NMT / heartbeat / SDO requests that are due |
+//! | feedback | FEEDBACK_A → steering + rolling, FEEDBACK_B → leg | steering drive TPDO1, rolling drive TPDO1, encoder TPDO1 |
+//! | sequence of steering samples | the module's rolling counter | the count of the drive's TPDO1s |
+//! | module state | STATUS frames | statusword, EMCY, heartbeat, boot (the master's latched device faults) |
+//! | end of cycle | one SETPOINT per module | one RPDO1 per drive (controlword + target velocity) |
+//! | ready to arm | always | when every device is booted, configured and started |
+//!
+//! The native link is exactly the code the cycle core had before the second profile: the
+//! same frames, in the same order.
+
+use crate::angle;
+use crate::platform::{Platform, Protocol};
+use crate::types::MAX_WHEELS;
+use rollbase_driver::canopen::config::Role;
+use rollbase_driver::canopen::master::{BootState, DeviceFault, Event, Master, Reject};
+use rollbase_driver::codec::{
+    encode, Message, ModuleState, Payload, Setpoint, SetpointFlags, Sync,
+};
+use rollbase_driver::frame::{CanFrame, FrameBuf};
+use rollbase_driver::rx::{CounterPolicy, Receiver, RxError, RxStats};
+use rollbase_driver::DecodeError;
+
+/// One feedback sample from a received frame, in SI units.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Update {
+    /// Steering angle (wrapped to (−π, π]) and rate; `seq` counts the wheel's steering
+    /// samples modulo 16.
+    Steer {
+        /// Wheel index.
+        wheel: usize,
+        /// φ (rad).
+        angle: f64,
+        /// φ̇ (rad/s).
+        rate: f64,
+        /// Sample sequence number (mod 16).
+        seq: u8,
+    },
+    /// Wheel spin rate ω (rad/s).
+    Drive {
+        /// Wheel index.
+        wheel: usize,
+        /// ω (rad/s).
+        speed: f64,
+    },
+    /// Leg extension λ (m) and rate (m/s).
+    Leg {
+        /// Wheel index.
+        wheel: usize,
+        /// λ (m).
+        leg: f64,
+        /// λ̇ (m/s).
+        rate: f64,
+    },
+}
+
+/// The samples one frame carries (FEEDBACK_A carries two).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Updates {
+    items: [Option<Update>; 2],
+}
+
+impl Updates {
+    fn one(u: Update) -> Self {
+        Self {
+            items: [Some(u), None],
+        }
+    }
+
+    /// The samples.
+    pub fn iter(&self) -> impl Iterator<Item = Update> + '_ {
+        self.items.iter().flatten().copied()
+    }
+}
+
+/// A wheel's fault as the link reports it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum WheelFault {
+    /// Native: the module's STATUS reports a fault code.
+    Module {
+        /// Module node.
+        node: u8,
+        /// Fault code.
+        code: u8,
+    },
+    /// CiA 402: a device of the wheel has a latched fault.
+    Device {
+        /// Node-ID.
+        node: u8,
+        /// Which device.
+        role: Role,
+        /// What happened.
+        fault: DeviceFault,
+    },
+}
+
+/// The native profile's link: the code the cycle core always had.
+pub struct NativeLink {
+    nodes: [u8; MAX_WHEELS],
+    node_to_wheel: [Option<usize>; 16],
+    n: usize,
+    rx: Receiver,
+    sync_counter: u8,
+    setpoint_counter: [u8; MAX_WHEELS],
+    state: [Option<ModuleState>; MAX_WHEELS],
+    fault_code: [u8; MAX_WHEELS],
+    cycle: u64,
+}
+
+/// The CiA 402 profile's link: the driver's sans-IO master, plus the receive statistics
+/// in the native receiver's terms (see [`Link::rx_stats`]).
+pub struct Cia402Link {
+    master: Master,
+    stats: RxStats,
+    n: usize,
+}
+
+/// The link of a cycle core.
+#[allow(clippy::large_enum_variant)] // one per core, never moved in the hot path
+pub enum Link {
+    /// Native wheel-module protocol.
+    Native(NativeLink),
+    /// CANopen CiA 402 / 406.
+    Cia402(Cia402Link),
+}
+
+fn rx_error_kind(e: &RxError) -> &'static str {
+    match e {
+        RxError::RepeatedCounter { .. } => "repeated_counter",
+        RxError::SkippedCounter { .. } => "skipped_counter",
+        RxError::Decode(d) => match d {
+            DecodeError::UnknownId { .. } => "unknown_id",
+            DecodeError::BadCrc { .. } => "bad_crc",
+            DecodeError::WrongDlc { .. } => "wrong_dlc",
+            DecodeError::OutOfRange { .. } => "out_of_range",
+            _ => "invalid",
+        },
+    }
+}
+
+impl Link {
+    /// The link for the platform's profile. The platform must be valid.
+    pub fn new(p: &Platform, counter_policy: CounterPolicy) -> Self {
+        let n = p.n().min(MAX_WHEELS);
+        match p.protocol {
+            Protocol::Native => {
+                let mut nodes = [0u8; MAX_WHEELS];
+                let mut node_to_wheel = [None; 16];
+                for (i, w) in p.wheels.iter().enumerate().take(MAX_WHEELS) {
+                    nodes[i] = w.node;
+                    node_to_wheel[usize::from(w.node & 15)] = Some(i);
+                }
+                Link::Native(NativeLink {
+                    nodes,
+                    node_to_wheel,
+                    n,
+                    rx: Receiver::with_policy(counter_policy),
+                    sync_counter: 0,
+                    setpoint_counter: [0; MAX_WHEELS],
+                    state: [None; MAX_WHEELS],
+                    fault_code: [0; MAX_WHEELS],
+                    cycle: 0,
+                })
+            }
+            Protocol::Cia402 => Link::Cia402(Cia402Link {
+                master: Master::new(&p.cia402(), p.dt()),
+                stats: RxStats::default(),
+                n,
+            }),
+        }
+    }
+
+    /// The node that names wheel `i` in messages: the module (native) or the steering
+    /// drive (CiA 402, whose samples the encoder-jump check uses).
+    pub fn wheel_node(&self, i: usize) -> u8 {
+        match self {
+            Link::Native(l) => l.nodes.get(i).copied().unwrap_or(0),
+            Link::Cia402(l) => l.master.node(i, Role::Steer).unwrap_or(0),
+        }
+    }
+
+    /// The node of wheel `i`'s stream: `steer` (steering angle), `drive` (wheel speed) or
+    /// `leg`; the module's node for every stream of the native profile.
+    pub fn stream_node(&self, i: usize, role: Role) -> u8 {
+        match self {
+            Link::Native(l) => l.nodes.get(i).copied().unwrap_or(0),
+            Link::Cia402(l) => l.master.node(i, role).unwrap_or(0),
+        }
+    }
+
+    /// Frames of the start of a cycle at `t`, SYNC first.
+    pub fn start_cycle(&mut self, cycle: u64, t: f64, out: &mut FrameBuf) {
+        match self {
+            Link::Native(l) => {
+                l.cycle = cycle;
+                let msg = Message {
+                    node: 0,
+                    counter: l.sync_counter,
+                    payload: Payload::Sync(Sync {
+                        cycle: (cycle & 0xFFFF) as u16,
+                    }),
+                };
+                l.sync_counter = (l.sync_counter + 1) & 0x0F;
+                // SYNC always encodes (node 0, counter < 16, raw cycle).
+                if let Ok(f) = encode(&msg) {
+                    out.push(f);
+                }
+            }
+            Link::Cia402(l) => l.master.start_cycle(t, out),
+        }
+    }
+
+    /// Takes one received frame; `Err` names the rejection kind (as recorded).
+    pub fn on_frame(&mut self, frame: &CanFrame, t: f64) -> Result<Updates, &'static str> {
+        match self {
+            Link::Native(l) => {
+                let msg = l.rx.accept(frame).map_err(|e| rx_error_kind(&e))?;
+                let Some(w) = l
+                    .node_to_wheel
+                    .get(usize::from(msg.node))
+                    .copied()
+                    .flatten()
+                    .filter(|w| *w < l.n)
+                else {
+                    return Ok(Updates::default());
+                };
+                Ok(match msg.payload {
+                    Payload::FeedbackA(a) => Updates {
+                        items: [
+                            Some(Update::Steer {
+                                wheel: w,
+                                angle: a.steer_angle,
+                                rate: a.steer_rate,
+                                seq: msg.counter,
+                            }),
+                            Some(Update::Drive {
+                                wheel: w,
+                                speed: a.wheel_speed,
+                            }),
+                        ],
+                    },
+                    Payload::FeedbackB(b) => Updates::one(Update::Leg {
+                        wheel: w,
+                        leg: b.leg_extension,
+                        rate: b.leg_rate,
+                    }),
+                    Payload::Status(s) => {
+                        l.state[w] = Some(s.state);
+                        l.fault_code[w] = s.fault_code;
+                        Updates::default()
+                    }
+                    _ => Updates::default(),
+                })
+            }
+            Link::Cia402(l) => {
+                let r = l.master.on_frame(frame, t);
+                let s = &mut l.stats;
+                match r {
+                    Ok(e) => {
+                        s.accepted += 1;
+                        Ok(match e {
+                            Event::None => Updates::default(),
+                            Event::Steer {
+                                wheel,
+                                angle: a,
+                                rate,
+                                seq,
+                            } => Updates::one(Update::Steer {
+                                wheel,
+                                angle: angle::wrap(a),
+                                rate,
+                                seq,
+                            }),
+                            Event::Drive { wheel, speed, .. } => {
+                                Updates::one(Update::Drive { wheel, speed })
+                            }
+                            Event::Leg { wheel, leg, rate } => {
+                                Updates::one(Update::Leg { wheel, leg, rate })
+                            }
+                        })
+                    }
+                    Err(e) => {
+                        match e {
+                            Reject::Malformed => s.wrong_dlc += 1,
+                            Reject::UnknownId | Reject::UnknownNode => s.unknown_id += 1,
+                            Reject::ForeignMaster | Reject::Unexpected => s.other += 1,
+                        }
+                        Err(e.kind())
+                    }
+                }
+            }
+        }
+    }
+
+    /// The setpoint frames at the end of a cycle at `t` (one per wheel natively, one per
+    /// drive on CiA 402, then SDO requests that became due).
+    pub fn finish_cycle(&mut self, t: f64, setpoints: &[Setpoint], out: &mut FrameBuf) {
+        match self {
+            Link::Native(l) => {
+                for (i, sp) in setpoints.iter().enumerate().take(l.n) {
+                    let msg = Message {
+                        node: l.nodes[i],
+                        counter: l.setpoint_counter[i],
+                        payload: Payload::Setpoint(*sp),
+                    };
+                    let frame = match encode(&msg) {
+                        Ok(f) => f,
+                        Err(_) => {
+                            // Not representable on the wire (beyond the protocol range): never
+                            // clamp one wheel silently; send a braking zero setpoint for this
+                            // wheel and let the supervisor's limit check stop the platform.
+                            let safe = Message {
+                                payload: Payload::Setpoint(Setpoint {
+                                    wheel_speed: 0.0,
+                                    steer_rate: 0.0,
+                                    flags: SetpointFlags {
+                                        enable: sp.flags.enable,
+                                        brake: true,
+                                        fault_reset: false,
+                                    },
+                                }),
+                                ..msg
+                            };
+                            match encode(&safe) {
+                                Ok(f) => f,
+                                Err(_) => continue,
+                            }
+                        }
+                    };
+                    l.setpoint_counter[i] = (l.setpoint_counter[i] + 1) & 0x0F;
+                    out.push(frame);
+                }
+            }
+            Link::Cia402(l) => l.master.finish_cycle(t, setpoints, out),
+        }
+    }
+
+    /// True when the devices are ready for the supervisor to arm.
+    pub fn ready(&self) -> bool {
+        match self {
+            Link::Native(_) => true,
+            Link::Cia402(l) => l.master.ready(),
+        }
+    }
+
+    /// A boot failure (CiA 402): (wheel, node, role, fault).
+    pub fn boot_failure(&self) -> Option<(usize, u8, Role, DeviceFault)> {
+        match self {
+            Link::Native(_) => None,
+            Link::Cia402(l) => l.master.boot_failure().map(|(w, e)| {
+                let (node, role) = l
+                    .master
+                    .devices()
+                    .iter()
+                    .find(|d| matches!(d.fault, Some(DeviceFault::Boot(b)) if b == e))
+                    .map_or((0, Role::Drive), |d| (d.node, d.role));
+                (w, node, role, DeviceFault::Boot(e))
+            }),
+        }
+    }
+
+    /// The wheel's fault, if its module (native STATUS) or one of its devices (CiA 402,
+    /// latched until re-armed) reports one.
+    pub fn wheel_fault(&self, i: usize) -> Option<WheelFault> {
+        match self {
+            Link::Native(l) => (l.state.get(i).copied().flatten() == Some(ModuleState::Fault))
+                .then(|| WheelFault::Module {
+                    node: l.nodes[i],
+                    code: l.fault_code[i],
+                }),
+            Link::Cia402(l) => l
+                .master
+                .wheel_fault(i)
+                .map(|(node, role, fault)| WheelFault::Device { node, role, fault }),
+        }
+    }
+
+    /// The wheel's state for the record (`None` = not known yet).
+    pub fn wheel_state(&self, i: usize) -> Option<ModuleState> {
+        match self {
+            Link::Native(l) => l.state.get(i).copied().flatten(),
+            Link::Cia402(l) => (i < l.n).then(|| l.master.wheel_state(i)),
+        }
+    }
+
+    /// The operator re-armed at `t`: forget cached module states (native: only a STATUS
+    /// sent after the re-arm can fault the platform again) or clear the devices' latched
+    /// faults and boot again every device that is not running (CiA 402).
+    pub fn rearm(&mut self, t: f64) {
+        match self {
+            Link::Native(l) => {
+                l.state = [None; MAX_WHEELS];
+                l.fault_code = [0; MAX_WHEELS];
+            }
+            Link::Cia402(l) => l.master.rearm(t),
+        }
+    }
+
+    /// Cycles before the end of a run in which the drives are told to disable: one natively
+    /// (a SETPOINT acts on reception); with synchronous RPDOs (CiA 402, transmission type
+    /// 1..=240) the controlword acts at the next SYNC, so one more cycle is needed.
+    pub fn disable_lead_cycles(&self) -> u32 {
+        match self {
+            Link::Native(_) => 1,
+            Link::Cia402(l) => {
+                if (1..=240).contains(&l.master.config().rpdo_transmission) {
+                    2
+                } else {
+                    1
+                }
+            }
+        }
+    }
+
+    /// Receive statistics. Native: the receiver's. CiA 402: accepted frames, malformed ones
+    /// (wrong length, invalid values) as `wrong_dlc`, unknown ids and nodes as `unknown_id`,
+    /// frames of another master or unexpected responses as `other`.
+    pub fn rx_stats(&self) -> &RxStats {
+        match self {
+            Link::Native(l) => l.rx.stats(),
+            Link::Cia402(l) => &l.stats,
+        }
+    }
+
+    /// The CiA 402 master, when that is the profile.
+    pub fn master(&self) -> Option<&Master> {
+        match self {
+            Link::Native(_) => None,
+            Link::Cia402(l) => Some(&l.master),
+        }
+    }
+
+    /// True while CiA 402 devices are being booted or configured.
+    pub fn booting(&self) -> bool {
+        match self {
+            Link::Native(_) => false,
+            Link::Cia402(l) => {
+                l.master.booting()
+                    && l.master
+                        .devices()
+                        .iter()
+                        .any(|d| d.boot != BootState::Started)
+            }
+        }
+    }
+}
