@@ -219,11 +219,17 @@ async fn serve_client(stream: TcpStream, peer: SocketAddr, hub: Arc<Hub>) {
                 // Any element after the raw-mode `< ok >` shows the client has read the
                 // reply: start forwarding frames now instead of after the settle time
                 // (rollbase's own client sends `< echo >` for this right after the handshake).
+                // Subscribe before the element is handled: a frame it sends must not get a
+                // reply (an SDO response, a boot-up) that this client misses.
                 if matches!(mode, Mode::Raw)
                     && subscribe_at.is_some()
                     && !matches!(parsed, Ok(Element::RawMode))
                 {
-                    subscribe_at = Some(tokio::time::Instant::now());
+                    subscribe_at = None;
+                    rx = tx.as_ref().map(|t| t.subscribe());
+                    if verbose {
+                        eprintln!("bridge: client {id} in raw mode on {channel}");
+                    }
                 }
                 let reply: Option<String> = match (parsed, &mode) {
                     (Ok(Element::Echo), _) => Some("< echo >".into()),
@@ -540,6 +546,10 @@ mod tests {
 
     impl Server {
         fn start() -> Server {
+            Server::start_with(Duration::ZERO)
+        }
+
+        fn start_with(raw_settle: Duration) -> Server {
             let (port_tx, port_rx) = std::sync::mpsc::channel();
             let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
             let thread = std::thread::spawn(move || {
@@ -548,7 +558,7 @@ mod tests {
                     .build()
                     .expect("runtime");
                 let hub = Hub::new(BridgeConfig {
-                    raw_settle: Duration::ZERO,
+                    raw_settle,
                     queue: 1024,
                     verbose: false,
                 });
@@ -729,6 +739,34 @@ mod tests {
         let (sec, usec) = ts.split_once('.').expect("SEC.USEC");
         assert!(sec.len() >= 10 && usec.len() == 6, "{ts}");
         assert_eq!(&parts[3..], ["0011223344556677", ">"]);
+    }
+
+    #[test]
+    fn a_reply_to_the_first_frame_after_the_handshake_reaches_its_sender() {
+        // A settle time far longer than the test: only the early subscription on the
+        // client's first element can deliver the reply.
+        let server = Server::start_with(Duration::from_secs(30));
+        let mut device = joined(&server, "vcan0");
+        let mut s = std::net::TcpStream::connect(("127.0.0.1", server.port)).expect("connect");
+        s.set_read_timeout(Some(Duration::from_secs(5)))
+            .expect("timeout");
+        assert_eq!(read_reply(&mut s), "< hi >");
+        s.write_all(b"< open vcan0 >").expect("open");
+        assert_eq!(read_reply(&mut s), "< ok >");
+        s.write_all(b"< rawmode >").expect("raw");
+        assert_eq!(read_reply(&mut s), "< ok >");
+        // An SDO upload request, answered by the device as soon as it sees it.
+        s.write_all(b"< send 601 8 40 00 10 00 00 00 00 00 >")
+            .expect("send");
+        let req = recv(&mut device).expect("request reaches the device");
+        assert_eq!(req.frame.id(), 0x601);
+        let resp = CanFrame::new(0x581, &[0x43, 0, 0x10, 0, 0x92, 0x01, 0x02, 0]).expect("f");
+        CanBus::send(&mut device, &resp).expect("reply");
+        let r = read_reply(&mut s);
+        assert!(
+            r.contains("frame 581 ") && r.contains("4300100092010200"),
+            "{r}"
+        );
     }
 
     #[test]
