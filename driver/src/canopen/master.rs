@@ -155,6 +155,15 @@ pub enum DeviceFault {
         /// The state reported.
         state: NmtState,
     },
+    /// The master itself was silent (no cycle, so no heartbeat and no RPDO) for longer than
+    /// the drives' heartbeat consumer time: every drive has taken its communication-loss
+    /// reaction (0x6007) meanwhile.
+    MasterSilent {
+        /// How long the master was silent (ms).
+        ms: u32,
+        /// The drives' consumer time (ms).
+        timeout_ms: u16,
+    },
     /// The drive did not reach operation enabled in time.
     EnableTimeout {
         /// The last state it reported.
@@ -185,6 +194,10 @@ impl std::fmt::Display for DeviceFault {
                 write!(f, "device rebooted (boot-up message while running)")
             }
             Self::NmtState { state } => write!(f, "device left operational: now {state}"),
+            Self::MasterSilent { ms, timeout_ms } => write!(
+                f,
+                "the controller was silent for {ms} ms, longer than the drives' heartbeat consumer time of {timeout_ms} ms: the drive has taken its communication-loss reaction"
+            ),
             Self::EnableTimeout { state, ms } => match state {
                 Some(s) => write!(f, "drive did not reach operation enabled within {ms} ms (stuck in {s})"),
                 None => write!(f, "drive did not reach operation enabled within {ms} ms (no statusword received)"),
@@ -354,6 +367,7 @@ pub struct Master {
     plans: [Vec<SdoOp>; 3],
     next_master_hb: f64,
     now: f64,
+    last_start: Option<f64>,
     failure: Option<(usize, BootError)>,
     tx_overflow: u32,
 }
@@ -393,6 +407,7 @@ impl Master {
             plans,
             next_master_hb: 0.0,
             now: 0.0,
+            last_start: None,
             failure: None,
             tx_overflow: 0,
         }
@@ -501,6 +516,23 @@ impl Master {
     /// requests that are due; boot and heartbeat timeouts are checked.
     pub fn start_cycle(&mut self, t: f64, out: &mut FrameBuf) {
         self.now = t;
+        // A gap in our own cycles longer than the drives' consumer time: they have reacted to
+        // the missing heartbeat (and RPDOs) while we were away; say so now rather than when
+        // their statuswords or our heartbeat timeout tell.
+        if let Some(prev) = self.last_start {
+            let gap_ms = (t - prev) * 1e3;
+            if gap_ms > f64::from(self.cfg.device_heartbeat_timeout_ms) {
+                for d in &mut self.devices {
+                    if d.role != Role::Leg && d.boot == BootState::Started {
+                        d.latch(DeviceFault::MasterSilent {
+                            ms: gap_ms.round().min(f64::from(u32::MAX)) as u32,
+                            timeout_ms: self.cfg.device_heartbeat_timeout_ms,
+                        });
+                    }
+                }
+            }
+        }
+        self.last_start = Some(t);
         self.push(out, nmt::sync());
         if t >= self.next_master_hb {
             self.push(
@@ -1159,8 +1191,9 @@ mod tests {
         let cfg = Cia402Config::for_wheels(2);
         let mut m = Master::new(&cfg, 0.004);
         let mut dev = devices(&cfg);
-        run_boot(&mut m, &mut dev, 100);
-        let t = 1.0;
+        let k = run_boot(&mut m, &mut dev, 100);
+        // The clock runs on from the boot (a jump would be a silent master, see below).
+        let t = (k + 1) as f64 * 0.004;
         m.on_frame(&Emcy::new(emcy::codes::OVERCURRENT, 0x02).to_frame(3), t)
             .unwrap();
         // The fault's own statusword does not replace the more specific EMCY.
@@ -1203,11 +1236,12 @@ mod tests {
             Some((3, Role::Drive, DeviceFault::Emcy { .. }))
         ));
         // Re-arming clears the latches and resets the lost device only.
-        m.rearm(2.0);
+        let t = t + 0.4;
+        m.rearm(t);
         assert!(m.wheel_fault(1).is_none());
         assert!(!m.ready());
         buf.clear();
-        m.start_cycle(2.0, &mut buf);
+        m.start_cycle(t, &mut buf);
         let resets: Vec<u8> = buf
             .as_slice()
             .iter()
@@ -1215,6 +1249,36 @@ mod tests {
             .map(|f| f.data()[1])
             .collect();
         assert_eq!(resets, vec![3]);
+    }
+
+    #[test]
+    fn a_gap_in_the_masters_own_cycles_longer_than_the_drives_consumer_time_is_a_fault() {
+        let cfg = Cia402Config::for_wheels(1);
+        let mut m = Master::new(&cfg, 0.004);
+        let mut dev = devices(&cfg);
+        let k = run_boot(&mut m, &mut dev, 100);
+        let mut buf = FrameBuf::new();
+        let mut t = (k + 1) as f64 * 0.004;
+        // Late cycles up to the consumer time (60 ms) are not a fault …
+        for gap in [0.004, 0.030, 0.060] {
+            t += gap;
+            m.start_cycle(t, &mut buf);
+            assert!(m.wheel_fault(0).is_none(), "gap {gap}");
+        }
+        // … 64 ms is: both drives (not the encoder) have reacted meanwhile.
+        t += 0.064;
+        m.start_cycle(t, &mut buf);
+        let faulted: Vec<(u8, Option<DeviceFault>)> =
+            m.devices().iter().map(|d| (d.node, d.fault)).collect();
+        let silent = DeviceFault::MasterSilent {
+            ms: 64,
+            timeout_ms: 60,
+        };
+        assert_eq!(
+            faulted,
+            vec![(1, Some(silent)), (2, Some(silent)), (3, None)]
+        );
+        assert!(silent.to_string().contains("silent for 64 ms"));
     }
 
     #[test]
