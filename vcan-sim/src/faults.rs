@@ -47,7 +47,8 @@ use std::path::Path;
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Silent {
-    /// CAN node of the module (1..=15).
+    /// CAN node of the module (native profile, 1..=15) or of the CANopen device (CiA 402
+    /// profile, 1..=127).
     pub node: u8,
     /// Start (s).
     pub from: f64,
@@ -59,7 +60,8 @@ pub struct Silent {
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MotorFault {
-    /// CAN node of the module (1..=15).
+    /// CAN node of the module (native profile, 1..=15) or of the CANopen device (CiA 402
+    /// profile, 1..=127).
     pub node: u8,
     /// Time (s).
     pub at: f64,
@@ -69,7 +71,8 @@ pub struct MotorFault {
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EncoderStuck {
-    /// CAN node of the module (1..=15).
+    /// CAN node of the module (native profile, 1..=15) or of the CANopen device (CiA 402
+    /// profile, 1..=127).
     pub node: u8,
     /// Time (s).
     pub at: f64,
@@ -79,7 +82,8 @@ pub struct EncoderStuck {
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EncoderJump {
-    /// CAN node of the module (1..=15).
+    /// CAN node of the module (native profile, 1..=15) or of the CANopen device (CiA 402
+    /// profile, 1..=127).
     pub node: u8,
     /// Time (s).
     pub at: f64,
@@ -140,8 +144,12 @@ fn check_time(field: &str, t: f64) -> Result<(), SimError> {
 }
 
 fn check_node(field: &str, node: u8) -> Result<(), SimError> {
-    if !(1..=15).contains(&node) {
-        return Err(invalid(field, node, "CAN node numbers are 1..=15"));
+    if !(1..=127).contains(&node) {
+        return Err(invalid(
+            field,
+            node,
+            "node numbers are 1..=127 (wheel modules of the native profile: 1..=15)",
+        ));
     }
     Ok(())
 }

@@ -215,7 +215,8 @@ impl ModuleFirmware {
             MotorSetpoint {
                 wheel_speed: self.setpoint.wheel_speed,
                 steer_rate: self.setpoint.steer_rate,
-                enabled: true,
+                drive_enabled: true,
+                steer_enabled: true,
             }
         } else {
             MotorSetpoint::default()
@@ -520,7 +521,7 @@ mod tests {
             &mut |f| out.push(f),
         );
         assert_eq!(fw.state(), ModuleState::Ready);
-        assert!(!fw.motor_setpoint().enabled);
+        assert!(!fw.motor_setpoint().drive_enabled);
         assert_eq!(fw.motor_setpoint().wheel_speed, 0.0);
         fw.handle_frame(
             ms(5),
@@ -530,7 +531,7 @@ mod tests {
         );
         assert_eq!(fw.state(), ModuleState::Enabled);
         let m = fw.motor_setpoint();
-        assert!(m.enabled && (m.wheel_speed - 2.0).abs() < 1e-12);
+        assert!(m.drive_enabled && m.steer_enabled && (m.wheel_speed - 2.0).abs() < 1e-12);
         // A setpoint addressed to another node does nothing.
         let other = encode(&Message {
             node: NODE + 1,
@@ -625,7 +626,7 @@ mod tests {
         );
         assert_eq!(fw.fault_code(), FAULT_WATCHDOG);
         assert_eq!(fw.stopping_since(), Some(trip));
-        assert!(!fw.motor_setpoint().enabled);
+        assert!(!fw.motor_setpoint().drive_enabled);
         assert_eq!(fw.stats().watchdog_trips, 1);
         let st = statuses(&out);
         assert!(st
@@ -643,7 +644,7 @@ mod tests {
         });
         fw.inject_fault(ms(2), FAULT_OVERCURRENT);
         assert_eq!(fw.state(), ModuleState::Fault);
-        assert!(!fw.motor_setpoint().enabled);
+        assert!(!fw.motor_setpoint().drive_enabled);
         // Enable alone does not clear it.
         for k in 1..5u8 {
             fw.handle_frame(
@@ -662,12 +663,12 @@ mod tests {
         });
         assert_eq!(fw.state(), ModuleState::Ready);
         assert_eq!(fw.fault_code(), FAULT_NONE);
-        assert!(!fw.motor_setpoint().enabled);
+        assert!(!fw.motor_setpoint().drive_enabled);
         fw.handle_frame(ms(24), &setpoint(6, 2.0, true, false), &s, &mut |f| {
             out.push(f)
         });
         assert_eq!(fw.state(), ModuleState::Enabled);
-        assert!(fw.motor_setpoint().enabled);
+        assert!(fw.motor_setpoint().drive_enabled);
         let seq: Vec<(ModuleState, u8)> = statuses(&out)
             .iter()
             .map(|s| (s.state, s.fault_code))

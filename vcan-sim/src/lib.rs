@@ -7,6 +7,7 @@
 //!   real-time loop [`sim::run_realtime`] used by the `rollbase-sim` binary.
 #![deny(missing_docs)]
 
+pub mod canopen;
 pub mod error;
 pub mod faults;
 pub mod firmware;

@@ -345,8 +345,12 @@ pub struct MotorSetpoint {
     pub wheel_speed: f64,
     /// Steering rate setpoint (rad/s).
     pub steer_rate: f64,
-    /// Power stage enabled; when false both motors decelerate to zero at the torque limit.
-    pub enabled: bool,
+    /// Rolling motor's power stage enabled; when false it decelerates to zero at the torque
+    /// limit.
+    pub drive_enabled: bool,
+    /// Steering motor's power stage enabled; when false it decelerates to zero at the torque
+    /// limit.
+    pub steer_enabled: bool,
 }
 
 /// One module's encoder readings (quantized, noisy, delayed), in SI units.
@@ -697,7 +701,7 @@ impl Plant {
                 lim.drive_accel,
                 lim.drive_speed,
                 dt,
-                sp.enabled,
+                sp.drive_enabled,
             );
             let s0 = self.steer_rate[i];
             let s1 = motor_step(
@@ -707,7 +711,7 @@ impl Plant {
                 lim.steer_accel,
                 lim.steer_rate,
                 dt,
-                sp.enabled,
+                sp.steer_enabled,
             );
             let phi0 = self.steer[i];
             let phi1 = phi0 + 0.5 * (s0 + s1) * dt;
@@ -983,7 +987,8 @@ mod tests {
             sp[i] = MotorSetpoint {
                 wheel_speed: ux.hypot(*uy) / p.wheel_radius,
                 steer_rate: 0.0,
-                enabled: true,
+                drive_enabled: true,
+                steer_enabled: true,
             };
         }
         // No torque limit: the first-order ramp then scales all wheels alike, so the
@@ -1112,7 +1117,8 @@ mod tests {
         let sp = [MotorSetpoint {
             wheel_speed: v / p.wheel_radius,
             steer_rate: 0.0,
-            enabled: true,
+            drive_enabled: true,
+            steer_enabled: true,
         }; MAX_WHEELS];
         for _ in 0..300 {
             plant.step(DT, &sp);
@@ -1182,7 +1188,8 @@ mod tests {
         sp[0] = MotorSetpoint {
             wheel_speed: 1.0,
             steer_rate: 0.5,
-            enabled: true,
+            drive_enabled: true,
+            steer_enabled: true,
         };
         for _ in 0..20 {
             plant.step(DT, &sp);
@@ -1217,7 +1224,8 @@ mod tests {
         sp[0] = MotorSetpoint {
             wheel_speed: 13.0,
             steer_rate: 5.0,
-            enabled: true,
+            drive_enabled: true,
+            steer_enabled: true,
         };
         for k in 1..=10 {
             plant.step(DT, &sp);
@@ -1239,7 +1247,8 @@ mod tests {
         sp[0] = MotorSetpoint {
             wheel_speed: 50.0,
             steer_rate: -50.0,
-            enabled: true,
+            drive_enabled: true,
+            steer_enabled: true,
         };
         for _ in 0..1000 {
             plant.step(DT, &sp);
@@ -1252,7 +1261,8 @@ mod tests {
         );
         assert!((t.steer_rate[0] + 6.0).abs() < 1e-6, "{}", t.steer_rate[0]);
         // Disabled: decelerate at the torque limit, reach zero in ω/a_max.
-        sp[0].enabled = false;
+        sp[0].drive_enabled = false;
+        sp[0].steer_enabled = false;
         let mut steps = 0;
         while plant.truth().wheel_speed[0] != 0.0 && steps < 1000 {
             plant.step(DT, &sp);
@@ -1304,7 +1314,8 @@ mod tests {
             let sp = [MotorSetpoint {
                 wheel_speed: 2.0,
                 steer_rate: 0.1,
-                enabled: true,
+                drive_enabled: true,
+                steer_enabled: true,
             }; MAX_WHEELS];
             let mut out = Vec::new();
             for _ in 0..50 {
@@ -1333,7 +1344,8 @@ mod tests {
         let sp = [MotorSetpoint {
             wheel_speed: 5.0,
             steer_rate: 1.0,
-            enabled: true,
+            drive_enabled: true,
+            steer_enabled: true,
         }; MAX_WHEELS];
         let mut truths = Vec::new();
         for _ in 0..20 {
@@ -1355,7 +1367,8 @@ mod tests {
         let sp = [MotorSetpoint {
             wheel_speed: 3.0,
             steer_rate: 0.2,
-            enabled: true,
+            drive_enabled: true,
+            steer_enabled: true,
         }; MAX_WHEELS];
         for _ in 0..10 {
             plant.step(DT, &sp);
@@ -1418,7 +1431,8 @@ mod tests {
         let sp = [MotorSetpoint {
             wheel_speed: f64::NAN,
             steer_rate: f64::INFINITY,
-            enabled: true,
+            drive_enabled: true,
+            steer_enabled: true,
         }; MAX_WHEELS];
         plant.step(DT, &sp);
         let t = plant.truth();

@@ -26,12 +26,15 @@
 //! [`run_realtime`] drives the same core from a real bus in wall-clock time;
 //! [`Simulator::pump`] is the lockstep equivalent for one time instant.
 
+use crate::canopen::Device;
 use crate::error::{invalid, SimError};
 use crate::faults::FaultSchedule;
 use crate::firmware::{FirmwareConfig, FirmwareStats, ModuleFirmware};
 use crate::plant::{InitialState, MotorSetpoint, Plant, PlantConfig, PlantTruth};
-use rollbase_control::{Platform, ReferenceSample, MAX_WHEELS};
+use rollbase_control::{Platform, Protocol, ReferenceSample, MAX_WHEELS};
 use rollbase_driver::bus::CanBus;
+use rollbase_driver::canopen::config::Role;
+use rollbase_driver::canopen::emcy::codes as emcy_codes;
 use rollbase_driver::codec::{ModuleState, FAULT_OVERCURRENT};
 use rollbase_driver::fault::{FaultInjector, FaultModel, FaultStats};
 use rollbase_driver::frame::CanFrame;
@@ -61,6 +64,12 @@ pub struct SimConfig {
     pub response_latency: Duration,
     /// Master seed: plant noise and (unless the schedule has its own) frame faults.
     pub seed: u64,
+    /// Serialize the frames the simulator sends on a bus of this bit rate (`None`: every
+    /// frame goes out at its send time). Frames produced at the same instant go out one after
+    /// the other in CAN-id order (the lowest id wins arbitration), each taking its worst-case
+    /// length in bits ([`rollbase_driver::busload::frame_bits`]); the controller's own frames
+    /// are not modelled.
+    pub bitrate: Option<u32>,
 }
 
 impl Default for SimConfig {
@@ -73,6 +82,7 @@ impl Default for SimConfig {
             substep: Duration::from_millis(1),
             response_latency: Duration::from_micros(300),
             seed: 1,
+            bitrate: None,
         }
     }
 }
@@ -102,8 +112,16 @@ pub struct SimStats {
     pub injector: FaultStats,
     /// Number of modules (entries of `modules`).
     pub n: usize,
-    /// Per-module firmware counters, in platform wheel order.
+    /// Per-module firmware counters, in platform wheel order (native profile).
     pub modules: [FirmwareStats; MAX_WHEELS],
+}
+
+/// The devices on the bus: the native wheel-module firmwares or the CiA 402 profile's
+/// CANopen devices (three per wheel).
+#[derive(Clone, Debug)]
+enum Modules {
+    Native(Vec<ModuleFirmware>),
+    CanOpen(Vec<Device>),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -117,6 +135,7 @@ enum EventKind {
 struct Event {
     at: f64,
     wheel: usize,
+    node: u8,
     kind: EventKind,
 }
 
@@ -124,8 +143,12 @@ struct Event {
 #[derive(Clone, Debug)]
 pub struct Simulator {
     plant: Plant,
-    firmwares: Vec<ModuleFirmware>,
-    nodes: [u8; MAX_WHEELS],
+    modules: Modules,
+    n_wheels: usize,
+    nodes: Vec<u8>,
+    outbox: Vec<(u8, CanFrame)>,
+    bitrate: Option<u32>,
+    bus_free: Duration,
     schedule: FaultSchedule,
     events: Vec<Event>,
     next_event: usize,
@@ -135,7 +158,6 @@ pub struct Simulator {
     now: Duration,
     plant_time: Duration,
     tx: VecDeque<(Duration, CanFrame)>,
-    scratch: Vec<CanFrame>,
     latched: Option<[MotorSetpoint; MAX_WHEELS]>,
     started: bool,
     stats: SimStats,
@@ -175,8 +197,19 @@ impl Simulator {
     pub fn with_config(platform: &Platform, cfg: SimConfig) -> Result<Self, SimError> {
         platform.validate()?;
         cfg.faults.validate()?;
-        let nodes_vec: Vec<u8> = platform.wheels.iter().map(|w| w.node).collect();
+        let cia402 = platform.cia402();
+        let nodes_vec: Vec<u8> = match platform.protocol {
+            Protocol::Native => platform.wheels.iter().map(|w| w.node).collect(),
+            Protocol::Cia402 => cia402.devices().map(|(_, _, n)| n).collect(),
+        };
         cfg.faults.check_nodes(&nodes_vec)?;
+        if cfg.bitrate == Some(0) {
+            return Err(invalid(
+                "bitrate",
+                0,
+                "must be a bit rate in bit/s (e.g. 1000000), or absent",
+            ));
+        }
         if cfg.substep.is_zero() || cfg.substep > Duration::from_millis(10) {
             return Err(invalid(
                 "substep",
@@ -201,28 +234,45 @@ impl Simulator {
             .initial
             .unwrap_or_else(|| InitialState::nominal(platform));
         let plant = Plant::new(platform, cfg.plant.clone(), initial, plant_seed)?;
-        let mut nodes = [0u8; MAX_WHEELS];
-        nodes[..nodes_vec.len()].copy_from_slice(&nodes_vec);
-        let firmwares = nodes_vec
-            .iter()
-            .map(|&n| ModuleFirmware::new(n, cfg.firmware))
-            .collect();
-        let wheel_of = |node: u8| nodes_vec.iter().position(|&n| n == node).unwrap_or(0);
+        let modules = match platform.protocol {
+            Protocol::Native => Modules::Native(
+                nodes_vec
+                    .iter()
+                    .map(|&n| ModuleFirmware::new(n, cfg.firmware))
+                    .collect(),
+            ),
+            Protocol::Cia402 => Modules::CanOpen(
+                cia402
+                    .devices()
+                    .map(|(w, r, _)| Device::new(&cia402, w, r, cfg.firmware.boot_time))
+                    .collect(),
+            ),
+        };
+        let wheel_of = |node: u8| match platform.protocol {
+            Protocol::Native => nodes_vec.iter().position(|&n| n == node).unwrap_or(0),
+            Protocol::Cia402 => cia402
+                .devices()
+                .find(|(_, _, n)| *n == node)
+                .map_or(0, |(w, _, _)| w),
+        };
         let f = &cfg.faults;
         let mut events: Vec<Event> = Vec::new();
         events.extend(f.motor_fault.iter().map(|m| Event {
             at: m.at,
             wheel: wheel_of(m.node),
+            node: m.node,
             kind: EventKind::MotorFault,
         }));
         events.extend(f.encoder_stuck.iter().map(|m| Event {
             at: m.at,
             wheel: wheel_of(m.node),
+            node: m.node,
             kind: EventKind::EncoderStuck,
         }));
         events.extend(f.encoder_jump.iter().map(|m| Event {
             at: m.at,
             wheel: wheel_of(m.node),
+            node: m.node,
             kind: EventKind::EncoderJump(m.amount),
         }));
         events.sort_by(|a, b| a.at.total_cmp(&b.at));
@@ -233,11 +283,15 @@ impl Simulator {
             delay: Duration::from_secs_f64(f.delay),
             jitter: Duration::from_secs_f64(f.jitter),
         };
-        let n = nodes_vec.len();
+        let n = platform.n();
         Ok(Self {
             plant,
-            firmwares,
-            nodes,
+            modules,
+            n_wheels: n,
+            nodes: nodes_vec,
+            outbox: Vec::with_capacity(32),
+            bitrate: cfg.bitrate,
+            bus_free: Duration::ZERO,
             schedule: cfg.faults,
             events,
             next_event: 0,
@@ -247,7 +301,6 @@ impl Simulator {
             now: Duration::ZERO,
             plant_time: Duration::ZERO,
             tx: VecDeque::with_capacity(TX_QUEUE_CAPACITY),
-            scratch: Vec::with_capacity(8),
             latched: None,
             started: false,
             stats: SimStats {
@@ -257,14 +310,23 @@ impl Simulator {
         })
     }
 
-    /// Number of wheel modules.
+    /// Number of wheels.
     pub fn n(&self) -> usize {
-        self.firmwares.len()
+        self.n_wheels
     }
 
-    /// The modules' CAN nodes, in platform wheel order.
+    /// The devices' CAN nodes: one per wheel module in wheel order (native), or every
+    /// CANopen device wheel by wheel: rolling drive, steering drive, leg encoder (CiA 402).
     pub fn nodes(&self) -> &[u8] {
-        &self.nodes[..self.n()]
+        &self.nodes
+    }
+
+    /// The CiA 402 profile's devices (empty for the native profile).
+    pub fn devices(&self) -> &[Device] {
+        match &self.modules {
+            Modules::CanOpen(d) => d,
+            Modules::Native(_) => &[],
+        }
     }
 
     /// Latest time seen by `on_frame`/`advance_to`.
@@ -287,16 +349,44 @@ impl Simulator {
         &self.plant
     }
 
-    /// Module `i`'s firmware (platform wheel order).
+    /// Module `i`'s firmware (platform wheel order; native profile only).
     pub fn firmware(&self, i: usize) -> Option<&ModuleFirmware> {
-        self.firmwares.get(i)
+        match &self.modules {
+            Modules::Native(f) => f.get(i),
+            Modules::CanOpen(_) => None,
+        }
     }
 
-    /// State of every module.
+    /// State of every wheel module. CiA 402: Boot until the wheel's devices are
+    /// operational, Fault when a drive is in fault, Enabled when both drives are in operation
+    /// enabled, Ready otherwise.
     pub fn module_states(&self) -> [ModuleState; MAX_WHEELS] {
         let mut s = [ModuleState::Boot; MAX_WHEELS];
-        for (o, f) in s.iter_mut().zip(&self.firmwares) {
-            *o = f.state();
+        match &self.modules {
+            Modules::Native(f) => {
+                for (o, f) in s.iter_mut().zip(f) {
+                    *o = f.state();
+                }
+            }
+            Modules::CanOpen(devs) => {
+                use crate::canopen::DeviceNmt;
+                use rollbase_driver::canopen::ds402::State as S;
+                for (w, o) in s.iter_mut().enumerate().take(self.n_wheels) {
+                    let mine = || devs.iter().filter(move |d| d.wheel() == w);
+                    *o = if mine().any(|d| d.role() != Role::Leg && d.state402().is_fault()) {
+                        ModuleState::Fault
+                    } else if mine().any(|d| d.nmt() != DeviceNmt::Operational) {
+                        ModuleState::Boot
+                    } else if mine()
+                        .filter(|d| d.role() != Role::Leg)
+                        .all(|d| d.state402() == S::OperationEnabled)
+                    {
+                        ModuleState::Enabled
+                    } else {
+                        ModuleState::Ready
+                    };
+                }
+            }
         }
         s
     }
@@ -310,8 +400,10 @@ impl Simulator {
     pub fn stats(&self) -> SimStats {
         let mut s = self.stats;
         s.injector = *self.injector.stats();
-        for (o, f) in s.modules.iter_mut().zip(&self.firmwares) {
-            *o = *f.stats();
+        if let Modules::Native(fw) = &self.modules {
+            for (o, f) in s.modules.iter_mut().zip(fw) {
+                *o = *f.stats();
+            }
         }
         s
     }
@@ -331,11 +423,34 @@ impl Simulator {
         self.tx.len()
     }
 
-    /// Puts one frame produced by module `wheel` at `send_at` through the schedule.
-    fn transmit(&mut self, send_at: Duration, wheel: usize, frame: CanFrame) {
+    /// Sends what the devices produced at `send_at` (the outbox) through the schedule: in
+    /// production order, or, with a bit rate, serialized on the wire in CAN-id order.
+    fn flush_outbox(&mut self, send_at: Duration) {
+        let mut out = std::mem::take(&mut self.outbox);
+        if let Some(rate) = self.bitrate {
+            // The lowest id wins arbitration; equal ids keep their production order.
+            out.sort_by_key(|(_, f)| f.id());
+            let mut t = send_at.max(self.bus_free);
+            for &(node, f) in &out {
+                let bits = rollbase_driver::busload::frame_bits(f.len());
+                t += Duration::from_nanos(u64::from(bits) * 1_000_000_000 / u64::from(rate));
+                self.transmit(t, node, f);
+            }
+            self.bus_free = t;
+        } else {
+            for &(node, f) in &out {
+                self.transmit(send_at, node, f);
+            }
+        }
+        out.clear();
+        self.outbox = out;
+    }
+
+    /// Puts one frame produced by the device `node` at `send_at` through the schedule.
+    fn transmit(&mut self, send_at: Duration, node: u8, frame: CanFrame) {
         self.stats.frames_generated += 1;
         let t = secs(send_at);
-        if self.schedule.is_silent(self.nodes[wheel], t) {
+        if self.schedule.is_silent(node, t) {
             self.stats.frames_dropped_silent += 1;
             return;
         }
@@ -361,17 +476,27 @@ impl Simulator {
         });
     }
 
-    /// Runs every firmware's timers at `t`, transmitting what they produce at `t`.
+    /// Runs every device's timers at `t`, transmitting what they produce at `t`.
     fn tick_all(&mut self, t: Duration) {
-        for i in 0..self.firmwares.len() {
-            let mut out = std::mem::take(&mut self.scratch);
-            out.clear();
-            self.firmwares[i].tick(t, &mut |f| out.push(f));
-            for &f in &out {
-                self.transmit(t, i, f);
+        match &mut self.modules {
+            Modules::Native(fw) => {
+                for f in fw.iter_mut() {
+                    let node = f.node();
+                    let outbox = &mut self.outbox;
+                    f.tick(t, &mut |fr| outbox.push((node, fr)));
+                }
             }
-            self.scratch = out;
+            Modules::CanOpen(devs) => {
+                let sensors = self.plant.sensors();
+                for d in devs.iter_mut() {
+                    let node = d.node();
+                    let s = sensors[d.wheel().min(MAX_WHEELS - 1)];
+                    let outbox = &mut self.outbox;
+                    d.tick(t, &s, &mut |fr| outbox.push((node, fr)));
+                }
+            }
         }
+        self.flush_outbox(t);
     }
 
     fn fire_events(&mut self, t: Duration) {
@@ -383,11 +508,22 @@ impl Simulator {
             self.next_event += 1;
             self.stats.events_fired += 1;
             match ev.kind {
-                EventKind::MotorFault => {
-                    if let Some(fw) = self.firmwares.get_mut(ev.wheel) {
-                        fw.inject_fault(t, FAULT_OVERCURRENT);
+                EventKind::MotorFault => match &mut self.modules {
+                    Modules::Native(fw) => {
+                        if let Some(fw) = fw.get_mut(ev.wheel) {
+                            fw.inject_fault(t, FAULT_OVERCURRENT);
+                        }
                     }
-                }
+                    Modules::CanOpen(devs) => {
+                        if let Some(d) = devs.iter_mut().find(|d| d.node() == ev.node) {
+                            let outbox = &mut self.outbox;
+                            d.inject_fault(t, emcy_codes::OVERCURRENT, &mut |fr| {
+                                outbox.push((ev.node, fr))
+                            });
+                        }
+                        self.flush_outbox(t);
+                    }
+                },
                 EventKind::EncoderStuck => self.plant.set_encoder_stuck(ev.wheel, true),
                 EventKind::EncoderJump(a) => self.plant.add_steer_encoder_offset(ev.wheel, a),
             }
@@ -436,8 +572,30 @@ impl Simulator {
 
     fn motor_setpoints(&self) -> [MotorSetpoint; MAX_WHEELS] {
         let mut sp = [MotorSetpoint::default(); MAX_WHEELS];
-        for (o, f) in sp.iter_mut().zip(&self.firmwares) {
-            *o = f.motor_setpoint();
+        match &self.modules {
+            Modules::Native(fw) => {
+                for (o, f) in sp.iter_mut().zip(fw) {
+                    *o = f.motor_setpoint();
+                }
+            }
+            Modules::CanOpen(devs) => {
+                for d in devs {
+                    let Some(o) = sp.get_mut(d.wheel()) else {
+                        continue;
+                    };
+                    match (d.role(), d.motor()) {
+                        (Role::Drive, Some(w)) => {
+                            o.wheel_speed = w;
+                            o.drive_enabled = true;
+                        }
+                        (Role::Steer, Some(w)) => {
+                            o.steer_rate = w;
+                            o.steer_enabled = true;
+                        }
+                        _ => {}
+                    }
+                }
+            }
         }
         sp
     }
@@ -455,15 +613,24 @@ impl Simulator {
         }
         let sensors = self.plant.sensors();
         let send_at = now + self.response_latency;
-        for (i, reading) in sensors.iter().enumerate().take(self.firmwares.len()) {
-            let mut out = std::mem::take(&mut self.scratch);
-            out.clear();
-            self.firmwares[i].handle_frame(now, frame, reading, &mut |f| out.push(f));
-            for &f in &out {
-                self.transmit(send_at, i, f);
+        match &mut self.modules {
+            Modules::Native(fw) => {
+                for (f, reading) in fw.iter_mut().zip(sensors.iter()) {
+                    let node = f.node();
+                    let outbox = &mut self.outbox;
+                    f.handle_frame(now, frame, reading, &mut |fr| outbox.push((node, fr)));
+                }
             }
-            self.scratch = out;
+            Modules::CanOpen(devs) => {
+                for d in devs.iter_mut() {
+                    let node = d.node();
+                    let s = sensors[d.wheel().min(MAX_WHEELS - 1)];
+                    let outbox = &mut self.outbox;
+                    d.handle_frame(now, frame, &s, &mut |fr| outbox.push((node, fr)));
+                }
+            }
         }
+        self.flush_outbox(send_at);
     }
 
     /// Hands out every queued frame, in send-time order, with its send time.

@@ -1,14 +1,18 @@
 //! `rollbase-sim`: the simulated wheel modules and platform on a CAN bus, in real time.
 //!
 //! ```text
-//! rollbase-sim --bus vcan0 [--config platform.toml] [--plant plant.toml]
-//!              [--faults faults.toml] [--loss P] [--silent NODE:FROM:TO] … [--seed N]
-//!              [--duration S]
+//! rollbase-sim --bus vcan0 [--config platform.toml] [--profile native|cia402]
+//!              [--plant plant.toml] [--faults faults.toml] [--loss P]
+//!              [--silent NODE:FROM:TO] … [--seed N] [--duration S]
 //! ```
 //!
 //! The modules answer the controller's SYNCs (the simulator follows the bus's SYNC pace; it
 //! has no cycle clock of its own), obey its SETPOINTs and move the simulated platform in 1 ms
-//! sub-steps. Ctrl-C stops it cleanly and prints a summary.
+//! sub-steps. With `--profile cia402` (or `protocol = "cia402"` in the platform file) the
+//! bus carries CANopen instead: per wheel a CiA 402 rolling drive, a CiA 402 steering drive
+//! and a CiA 406 leg encoder, at the node-IDs of the file's `[cia402]` table, each with its
+//! object dictionary, SDO server, NMT, heartbeat, EMCY and PDOs (configured by the master
+//! over SDO). Ctrl-C stops it cleanly and prints a summary.
 //!
 //! `--bus virtual` creates an in-process virtual bus that no other process can reach: it is
 //! only useful to check a configuration. To run the controller against the simulator without
@@ -35,6 +39,10 @@ struct Cli {
     /// Platform description (TOML); default: the Justin-like platform.
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
+    /// Wire profile: native (rollbase wheel modules) or cia402 (CANopen CiA 402 drives and
+    /// CiA 406 leg encoders); default: the platform file's `protocol`.
+    #[arg(long)]
+    profile: Option<rollbase_control::Protocol>,
     /// Plant parameters (TOML: motor time constants, encoder noise …); default values otherwise.
     #[arg(long, value_name = "FILE")]
     plant: Option<PathBuf>,
@@ -108,10 +116,14 @@ fn open_bus(name: &str) -> Result<Box<dyn CanBus>, CliError> {
 }
 
 fn run(cli: Cli) -> Result<(), CliError> {
-    let platform = match &cli.config {
+    let mut platform = match &cli.config {
         Some(p) => Platform::load(p).map_err(SimError::from)?,
         None => Platform::justin(),
     };
+    if let Some(profile) = cli.profile {
+        platform.protocol = profile;
+        platform.validate().map_err(SimError::from)?;
+    }
     let plant = match &cli.plant {
         Some(p) => PlantConfig::load(p)?,
         None => PlantConfig::default(),
@@ -169,13 +181,23 @@ fn run(cli: Cli) -> Result<(), CliError> {
     };
     let sim = Simulator::with_config(&platform, cfg)?;
     let bus = open_bus(&cli.bus)?;
-    eprintln!(
-        "rollbase-sim: {} modules (nodes {:?}) of platform `{}` on {}; waiting for SYNC. Ctrl-C to stop.",
-        sim.n(),
-        sim.nodes(),
-        platform.name,
-        bus.name()
-    );
+    match platform.protocol {
+        rollbase_control::Protocol::Native => eprintln!(
+            "rollbase-sim: {} modules (nodes {:?}) of platform `{}` on {}; waiting for SYNC. Ctrl-C to stop.",
+            sim.n(),
+            sim.nodes(),
+            platform.name,
+            bus.name()
+        ),
+        rollbase_control::Protocol::Cia402 => eprintln!(
+            "rollbase-sim: CiA 402 profile, {} wheels = {} CANopen devices (nodes {:?}) of platform `{}` on {}; booting, then waiting for the master. Ctrl-C to stop.",
+            sim.n(),
+            sim.nodes().len(),
+            sim.nodes(),
+            platform.name,
+            bus.name()
+        ),
+    }
     let stop = Arc::new(AtomicBool::new(false));
     let handle = spawn_realtime(sim, bus, stop.clone(), duration);
     let rt = tokio::runtime::Builder::new_current_thread()
@@ -217,7 +239,31 @@ fn run(cli: Cli) -> Result<(), CliError> {
         st.injector.duplicated,
         st.injector.corrupted,
     );
-    for (i, m) in st.modules[..st.n].iter().enumerate() {
+    for d in sim.devices() {
+        let s = d.stats();
+        let state = if d.role() == rollbase_driver::canopen::config::Role::Leg {
+            String::new()
+        } else {
+            format!(", {} (statusword 0x{:04X})", d.state402(), d.statusword())
+        };
+        eprintln!(
+            "  node {}: wheel {} {}, {:?}{state}, {} SDO served, {} SDO aborted, {} SYNCs, {} TPDOs, {} RPDOs, {} EMCY, {} heartbeat timeouts, {} RPDO timeouts",
+            d.node(),
+            d.wheel() + 1,
+            d.role(),
+            d.nmt(),
+            s.sdo_served,
+            s.sdo_aborted,
+            s.syncs,
+            s.tpdos_sent,
+            s.rpdos_received,
+            s.emcy_sent,
+            s.heartbeat_timeouts,
+            s.rpdo_timeouts
+        );
+    }
+    let native_modules = if sim.devices().is_empty() { st.n } else { 0 };
+    for (i, m) in st.modules[..native_modules].iter().enumerate() {
         eprintln!(
             "  node {}: {:?}, {} SYNCs answered, {} setpoints ok, {} bad CRC, {} bad counter, {} watchdog trips",
             sim.nodes()[i],

@@ -1,0 +1,1668 @@
+//! One simulated CANopen device (sans-IO): the CiA 301 communication (NMT, expedited SDO
+//! server, PDOs mapped by SDO writes, SYNC, heartbeat producer and consumer, EMCY) around a
+//! CiA 402 drive (state machine, cyclic synchronous velocity) or a CiA 406 linear encoder.
+//!
+//! Behaviour, CiA 301 unless noted:
+//! - Power-on and NMT reset: initialising for `boot_time`, then pre-operational with a
+//!   boot-up message. Reset communication restores 0x1000–0x1FFF and leaves the drive
+//!   application alone (a drive in fault stays in fault; one in operation enabled first
+//!   takes the 0x6007 reaction to leaving operational, see below); reset node restores every
+//!   object and restarts the drive in switch on disabled.
+//! - SDO: served in pre-operational and operational (not in stopped, not while
+//!   initialising); expedited only; segmented or block requests are aborted with 0x05040001.
+//!   Aborts: object missing 0x06020000, sub-index missing 0x06090011, read-only 0x06010002,
+//!   write-only 0x06010001, size 0x06070010, value 0x06090030 (modes of operation other than
+//!   0 or 9: only cyclic synchronous velocity is emulated; transmission types that do not
+//!   exist; an abort-connection code above 3; a 29-bit COB-ID), too many mapping entries
+//!   0x06090031.
+//! - PDO mapping: a mapping object can be written only while its PDO is invalid (COB-ID bit
+//!   31), entries only while sub-index 0 is 0; otherwise 0x08000022 (this emulation's choice
+//!   for "not in the present device state"). Writing sub-index 0 = n checks entries 1..=n:
+//!   each object exists, is mappable in that direction and has exactly the entry's length
+//!   (else 0x06040041), and together they fit 64 bits (else 0x06040042). Changing the COB-ID
+//!   of a valid PDO is refused (0x06090030). What the device sends and receives follows its
+//!   dictionary.
+//! - PDOs only in operational. A synchronous TPDO (type 1..=240) is sampled and sent at every
+//!   n-th SYNC (type 0: at a SYNC when a mapped value changed); an event-driven TPDO (254,
+//!   255) when a mapped value changed, no sooner than its inhibit time after the previous one,
+//!   and every event-timer period. A synchronous RPDO's data is applied at the next SYNC, an
+//!   asynchronous one on reception; an RPDO of the wrong length is dropped with EMCY 0x8210.
+//! - Heartbeat consumer (0x1016:01, drives): monitoring starts with the first heartbeat of
+//!   that node; a gap longer than the consumer time sends EMCY 0x8130. RPDO deadline (RPDO
+//!   event timer, drives): after the first RPDO, a gap longer than the timer sends EMCY
+//!   0x8250. Either, in operation enabled only, applies the abort connection option 0x6007
+//!   (1 fault, 2 disable voltage, 3 quick stop); in the other states the drive function is
+//!   off anyway and only the EMCY is sent. Each is reported once until the heartbeat or
+//!   RPDO comes back. Leaving NMT operational in operation enabled applies the same reaction.
+//! - CiA 402: not ready to switch on → switch on disabled when the boot completes; fault
+//!   reaction active → fault one tick later. The motor follows the target velocity only in
+//!   operation enabled, with modes of operation 9 and the halt bit clear; otherwise its power
+//!   stage is off (the plant decelerates it at the torque limit). An injected motor fault sends
+//!   EMCY 0x2310 (error register 0x03) and goes to fault; a fault reset sends EMCY 0x0000.
+//!   Statusword: the state's bits, voltage enabled (bit 4) from ready to switch on up, remote
+//!   (bit 9) always, bit 12 while the drive follows its command.
+//! - Process values: position actual of a steering drive = the plant's steering angle,
+//!   unwrapped, minus the wheel's homing offset; of a rolling drive = the integrated wheel
+//!   angle; velocities from the plant's rates; encoder position and speed from the leg.
+
+use super::od::{Access, Dictionary, Mappable};
+use crate::plant::SensorReading;
+use rollbase_control::angle;
+use rollbase_driver::canopen::cob::{self, Cob};
+use rollbase_driver::canopen::config::{Cia402Config, Role};
+use rollbase_driver::canopen::ds402::{self, State as State402};
+use rollbase_driver::canopen::emcy::{codes, Emcy};
+use rollbase_driver::canopen::nmt::{self, NmtCommand, NmtState};
+use rollbase_driver::canopen::od;
+use rollbase_driver::canopen::pdo::{self, MapEntry};
+use rollbase_driver::canopen::sdo::{AbortCode, SdoRequest, SdoResponse};
+use rollbase_driver::canopen::units::{DriveUnits, EncoderUnits};
+use rollbase_driver::frame::CanFrame;
+use std::time::Duration;
+
+/// PDOs per direction.
+pub const PDOS: usize = 4;
+/// CiA 402 error code object (UNSIGNED16): the last error.
+pub const ERROR_CODE: u16 = 0x603F;
+/// Error code recorded when the drive is faulted by leaving NMT operational (CiA 301:
+/// 0x8100, communication).
+pub const COMMUNICATION: u16 = 0x8100;
+
+/// NMT state of a device, including the initialisation before its boot-up.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DeviceNmt {
+    /// Initialising after power-on or a reset; no communication.
+    Initialising,
+    /// Pre-operational: SDO and NMT, no PDO.
+    PreOperational,
+    /// Operational: everything.
+    Operational,
+    /// Stopped: NMT (and heartbeat) only.
+    Stopped,
+}
+
+impl DeviceNmt {
+    fn heartbeat(self) -> Option<NmtState> {
+        match self {
+            DeviceNmt::Initialising => None,
+            DeviceNmt::PreOperational => Some(NmtState::PreOperational),
+            DeviceNmt::Operational => Some(NmtState::Operational),
+            DeviceNmt::Stopped => Some(NmtState::Stopped),
+        }
+    }
+}
+
+/// What the device does.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum App {
+    /// A CiA 402 drive.
+    Drive {
+        /// Units of its position and velocity objects.
+        units: DriveUnits,
+        /// Steering (true) or rolling (false).
+        steer: bool,
+        /// Steering angle at position 0 (rad).
+        offset: f64,
+    },
+    /// A CiA 406 linear encoder.
+    Encoder {
+        /// Units of its position and speed objects.
+        units: EncoderUnits,
+    },
+}
+
+/// Counters of one device.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct DeviceStats {
+    /// SDO requests answered with data or an acknowledgement.
+    pub sdo_served: u64,
+    /// SDO requests answered with an abort.
+    pub sdo_aborted: u64,
+    /// NMT commands addressed to the device.
+    pub nmt_commands: u64,
+    /// Boot-up messages sent.
+    pub boot_ups: u64,
+    /// SYNCs received in operational.
+    pub syncs: u64,
+    /// TPDOs sent.
+    pub tpdos_sent: u64,
+    /// RPDOs received (operational, right length).
+    pub rpdos_received: u64,
+    /// RPDOs dropped for their length.
+    pub rpdo_length_errors: u64,
+    /// EMCY messages sent.
+    pub emcy_sent: u64,
+    /// Heartbeats sent.
+    pub heartbeats_sent: u64,
+    /// Heartbeat consumer timeouts.
+    pub heartbeat_timeouts: u64,
+    /// RPDO deadline timeouts.
+    pub rpdo_timeouts: u64,
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+struct TpdoRun {
+    sync_count: u8,
+    last_sent: Option<Duration>,
+    last_values: [u32; 8],
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+struct RpdoRun {
+    pending: Option<[u32; 8]>,
+    last_rx: Option<Duration>,
+    timed_out: bool,
+}
+
+/// One simulated device.
+#[derive(Clone, Debug)]
+pub struct Device {
+    node: u8,
+    wheel: usize,
+    role: Role,
+    app: App,
+    od: Dictionary,
+    nmt: DeviceNmt,
+    boot_time: Duration,
+    boot_at: Duration,
+    state: State402,
+    last_cw: u16,
+    halt: bool,
+    fault_since: Option<Duration>,
+    tpdo: [TpdoRun; PDOS],
+    rpdo: [RpdoRun; PDOS],
+    next_hb: Option<Duration>,
+    consumer_last: Option<Duration>,
+    consumer_timed_out: bool,
+    last_sample: Option<Duration>,
+    joint_angle: f64,
+    last_wrapped: Option<f64>,
+    stats: DeviceStats,
+}
+
+fn ms(v: u32) -> Duration {
+    Duration::from_millis(u64::from(v))
+}
+
+fn valid_transmission(dir: Mappable, t: u8) -> bool {
+    match dir {
+        Mappable::Rpdo => matches!(t, 0..=240 | 254 | 255),
+        _ => matches!(t, 0..=240 | 252..=255),
+    }
+}
+
+impl Device {
+    /// Device `role` of wheel `wheel` with the node, units and homing offset of `cfg`,
+    /// powered on at time 0 and initialising for `boot_time`.
+    pub fn new(cfg: &Cia402Config, wheel: usize, role: Role, boot_time: Duration) -> Self {
+        let w = cfg.wheels.get(wheel).copied().unwrap_or(cfg.wheels[0]);
+        let node = w.node(role);
+        let app = match role {
+            Role::Drive => App::Drive {
+                units: cfg.drive,
+                steer: false,
+                offset: 0.0,
+            },
+            Role::Steer => App::Drive {
+                units: cfg.steer,
+                steer: true,
+                offset: w.steer_offset_rad,
+            },
+            Role::Leg => App::Encoder {
+                units: cfg.leg_encoder,
+            },
+        };
+        let mut d = Self {
+            node,
+            wheel,
+            role,
+            app,
+            od: Dictionary::new(),
+            nmt: DeviceNmt::Initialising,
+            boot_time,
+            boot_at: boot_time,
+            state: State402::NotReadyToSwitchOn,
+            last_cw: 0,
+            halt: false,
+            fault_since: None,
+            tpdo: [TpdoRun::default(); PDOS],
+            rpdo: [RpdoRun::default(); PDOS],
+            next_hb: None,
+            consumer_last: None,
+            consumer_timed_out: false,
+            last_sample: None,
+            joint_angle: 0.0,
+            last_wrapped: None,
+            stats: DeviceStats::default(),
+        };
+        d.build_dictionary();
+        d.update_statusword();
+        d
+    }
+
+    fn is_drive(&self) -> bool {
+        matches!(self.app, App::Drive { .. })
+    }
+
+    fn build_dictionary(&mut self) {
+        use Access::*;
+        use Mappable as M;
+        let node = u32::from(self.node);
+        let drive = self.is_drive();
+        let d = &mut self.od;
+        let device_type = if drive { 0x0002_0192 } else { 0x0008_0196 };
+        d.add(od::DEVICE_TYPE, 0, 4, Const, M::No, device_type);
+        d.add(od::ERROR_REGISTER, 0, 1, Ro, M::Tpdo, 0);
+        d.add(od::COB_ID_SYNC, 0, 4, Rw, M::No, 0x80);
+        d.add(od::COMM_CYCLE_PERIOD, 0, 4, Rw, M::No, 0);
+        d.add(od::PRODUCER_HEARTBEAT, 0, 2, Rw, M::No, 0);
+        d.add(od::IDENTITY, 0, 1, Const, M::No, 4);
+        // Vendor-ID 0: not a registered vendor (a simulation).
+        d.add(od::IDENTITY, 1, 4, Const, M::No, 0);
+        d.add(
+            od::IDENTITY,
+            2,
+            4,
+            Const,
+            M::No,
+            if drive { 402 } else { 406 },
+        );
+        d.add(od::IDENTITY, 3, 4, Const, M::No, 1);
+        d.add(od::IDENTITY, 4, 4, Const, M::No, node);
+        let tpdos = PDOS as u16;
+        for n in 0..tpdos {
+            let comm = od::TPDO_COMM + n;
+            let map = od::TPDO_MAP + n;
+            let base = u32::from(cob::TPDO[usize::from(n)]) + node;
+            // TPDO1 exists by default (CiA 402: statusword; CiA 406: position value), the
+            // others not.
+            let cob_id = if n == 0 {
+                od::PDO_COB_NO_RTR | base
+            } else {
+                od::PDO_COB_INVALID | od::PDO_COB_NO_RTR | base
+            };
+            d.add(comm, 0, 1, Const, M::No, 5);
+            d.add(comm, 1, 4, Rw, M::No, cob_id);
+            let default_type = if drive { 255 } else { 1 };
+            d.add(
+                comm,
+                2,
+                1,
+                Rw,
+                M::No,
+                if n == 0 { default_type } else { 255 },
+            );
+            d.add(comm, 3, 2, Rw, M::No, 0);
+            d.add(comm, 5, 2, Rw, M::No, 0);
+            let first = match (n, drive) {
+                (0, true) => (1, MapEntry::new(od::STATUSWORD, 0, 16).raw()),
+                (0, false) => (1, MapEntry::new(od::POSITION_VALUE, 0, 32).raw()),
+                _ => (0, 0),
+            };
+            d.add(map, 0, 1, Rw, M::No, first.0);
+            for s in 1..=8u8 {
+                d.add(map, s, 4, Rw, M::No, if s == 1 { first.1 } else { 0 });
+            }
+        }
+        if drive {
+            for n in 0..tpdos {
+                let comm = od::RPDO_COMM + n;
+                let map = od::RPDO_MAP + n;
+                let base = u32::from(cob::RPDO[usize::from(n)]) + node;
+                let cob_id = if n == 0 {
+                    base
+                } else {
+                    od::PDO_COB_INVALID | base
+                };
+                d.add(comm, 0, 1, Const, M::No, 5);
+                d.add(comm, 1, 4, Rw, M::No, cob_id);
+                d.add(comm, 2, 1, Rw, M::No, 255);
+                d.add(comm, 5, 2, Rw, M::No, 0);
+                let first = if n == 0 {
+                    (1, MapEntry::new(od::CONTROLWORD, 0, 16).raw())
+                } else {
+                    (0, 0)
+                };
+                d.add(map, 0, 1, Rw, M::No, first.0);
+                for s in 1..=8u8 {
+                    d.add(map, s, 4, Rw, M::No, if s == 1 { first.1 } else { 0 });
+                }
+            }
+            d.add(od::CONSUMER_HEARTBEAT, 0, 1, Const, M::No, 1);
+            d.add(od::CONSUMER_HEARTBEAT, 1, 4, Rw, M::No, 0);
+            d.add(od::ABORT_CONNECTION_OPTION, 0, 2, Rw, M::No, 1);
+            d.add(ERROR_CODE, 0, 2, Ro, M::Tpdo, 0);
+            d.add(od::CONTROLWORD, 0, 2, Rw, M::Rpdo, 0);
+            d.add(od::STATUSWORD, 0, 2, Ro, M::Tpdo, 0);
+            d.add(od::MODES_OF_OPERATION, 0, 1, Rw, M::Rpdo, 0);
+            d.add(od::MODES_OF_OPERATION_DISPLAY, 0, 1, Ro, M::Tpdo, 0);
+            d.add(od::POSITION_ACTUAL, 0, 4, Ro, M::Tpdo, 0);
+            d.add(od::VELOCITY_ACTUAL, 0, 4, Ro, M::Tpdo, 0);
+            d.add(od::INTERPOLATION_TIME_PERIOD, 0, 1, Const, M::No, 2);
+            d.add(od::INTERPOLATION_TIME_PERIOD, 1, 1, Rw, M::No, 1);
+            d.add(
+                od::INTERPOLATION_TIME_PERIOD,
+                2,
+                1,
+                Rw,
+                M::No,
+                u32::from((-3i8) as u8),
+            );
+            d.add(od::TARGET_VELOCITY, 0, 4, Rw, M::Rpdo, 0);
+        } else if let App::Encoder { units } = self.app {
+            d.add(od::POSITION_VALUE, 0, 4, Ro, M::Tpdo, 0);
+            d.add(od::MEASURING_STEP, 0, 1, Const, M::No, 2);
+            d.add(od::MEASURING_STEP, 1, 4, Ro, M::No, units.position_step_nm);
+            d.add(od::MEASURING_STEP, 2, 4, Ro, M::No, units.speed_step_um_s);
+            d.add(od::SPEED_VALUE, 0, 1, Const, M::No, 1);
+            d.add(od::SPEED_VALUE, 1, 2, Ro, M::Tpdo, 0);
+        }
+    }
+
+    /// Node-ID.
+    pub fn node(&self) -> u8 {
+        self.node
+    }
+
+    /// Wheel index.
+    pub fn wheel(&self) -> usize {
+        self.wheel
+    }
+
+    /// Role on the platform.
+    pub fn role(&self) -> Role {
+        self.role
+    }
+
+    /// NMT state.
+    pub fn nmt(&self) -> DeviceNmt {
+        self.nmt
+    }
+
+    /// CiA 402 state (drives; an encoder stays in not ready to switch on).
+    pub fn state402(&self) -> State402 {
+        self.state
+    }
+
+    /// The statusword (drives).
+    pub fn statusword(&self) -> u16 {
+        self.od.value(od::STATUSWORD, 0) as u16
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> &DeviceStats {
+        &self.stats
+    }
+
+    /// The object dictionary (read access, for tests and reports).
+    pub fn dictionary(&self) -> &Dictionary {
+        &self.od
+    }
+
+    /// The joint rate the motor is told to follow (rad/s), or `None` when the drive function
+    /// is off (not enabled, halt, not in cyclic synchronous velocity, or an encoder).
+    pub fn motor(&self) -> Option<f64> {
+        match self.app {
+            App::Drive { units, .. } if self.follows() => {
+                Some(units.velocity_to_si(self.od.value(od::TARGET_VELOCITY, 0) as i32))
+            }
+            _ => None,
+        }
+    }
+
+    fn follows(&self) -> bool {
+        self.state == State402::OperationEnabled
+            && !self.halt
+            && self.od.value(od::MODES_OF_OPERATION, 0) as u8 as i8 == od::MODE_CSV
+    }
+
+    fn update_statusword(&mut self) {
+        if !self.is_drive() {
+            return;
+        }
+        let mut sw = self.state.statusword_bits() | ds402::SW_REMOTE;
+        if matches!(
+            self.state,
+            State402::ReadyToSwitchOn
+                | State402::SwitchedOn
+                | State402::OperationEnabled
+                | State402::QuickStopActive
+        ) {
+            sw |= ds402::SW_VOLTAGE_ENABLED;
+        }
+        if self.follows() {
+            sw |= ds402::SW_FOLLOWS_COMMAND;
+        }
+        self.od.set(od::STATUSWORD, 0, u32::from(sw));
+    }
+
+    fn set_state(&mut self, now: Duration, s: State402) {
+        if s != self.state {
+            self.state = s;
+            self.fault_since = (s == State402::FaultReactionActive).then_some(now);
+        }
+        self.update_statusword();
+    }
+
+    fn emcy(&mut self, code: u16, register: u8, out: &mut impl FnMut(CanFrame)) {
+        self.od.set(od::ERROR_REGISTER, 0, u32::from(register));
+        self.stats.emcy_sent += 1;
+        out(Emcy::new(code, register).to_frame(self.node));
+    }
+
+    /// A fault of the drive (e.g. an over-current): EMCY with `code` and the error register
+    /// 0x03 (generic, current), then fault reaction active → fault. No effect on an encoder.
+    pub fn inject_fault(&mut self, now: Duration, code: u16, out: &mut impl FnMut(CanFrame)) {
+        if !self.is_drive() || self.nmt == DeviceNmt::Initialising {
+            return;
+        }
+        self.od.set(ERROR_CODE, 0, u32::from(code));
+        self.emcy(code, 0x03, out);
+        if !self.state.is_fault() {
+            self.set_state(now, State402::FaultReactionActive);
+        }
+    }
+
+    /// The abort connection option (0x6007) reaction, in operation enabled only.
+    fn connection_reaction(&mut self, now: Duration, code: u16) {
+        if self.state != State402::OperationEnabled {
+            return;
+        }
+        match self.od.value(od::ABORT_CONNECTION_OPTION, 0) as u16 as i16 {
+            1 => {
+                self.od.set(ERROR_CODE, 0, u32::from(code));
+                self.set_state(now, State402::FaultReactionActive);
+            }
+            2 => self.set_state(now, State402::SwitchOnDisabled),
+            3 => self.set_state(now, State402::QuickStopActive),
+            _ => {}
+        }
+    }
+
+    fn comm_loss(&mut self, now: Duration, code: u16, out: &mut impl FnMut(CanFrame)) {
+        self.emcy(code, 0x11, out);
+        self.connection_reaction(now, code);
+    }
+
+    fn process_controlword(&mut self, now: Duration, cw: u16, out: &mut impl FnMut(CanFrame)) {
+        if !self.is_drive() {
+            return;
+        }
+        let prev = self.last_cw;
+        self.last_cw = cw;
+        self.halt = cw & ds402::CW_HALT != 0;
+        let before = self.state;
+        let after = ds402::device_transition(before, ds402::decode_controlword(cw, prev));
+        if before == State402::Fault && after == State402::SwitchOnDisabled {
+            self.od.set(ERROR_CODE, 0, 0);
+            self.emcy(codes::NO_ERROR, 0, out);
+        }
+        self.set_state(now, after);
+    }
+
+    /// Writes an object with its side effects (controlword, heartbeat times …), no checks.
+    fn apply(
+        &mut self,
+        now: Duration,
+        index: u16,
+        sub: u8,
+        v: u32,
+        out: &mut impl FnMut(CanFrame),
+    ) {
+        match (index, sub) {
+            (od::MODES_OF_OPERATION, 0) => {
+                let mode = v as u8 as i8;
+                if mode == 0 || mode == od::MODE_CSV {
+                    self.od.set(index, 0, v);
+                    self.od.set(od::MODES_OF_OPERATION_DISPLAY, 0, v);
+                    self.update_statusword();
+                }
+            }
+            (od::CONTROLWORD, 0) => {
+                self.od.set(index, sub, v);
+                self.process_controlword(now, v as u16, out);
+            }
+            (od::PRODUCER_HEARTBEAT, 0) => {
+                self.od.set(index, sub, v);
+                self.next_hb = (v & 0xFFFF != 0).then(|| now + ms(v & 0xFFFF));
+            }
+            (od::CONSUMER_HEARTBEAT, 1) => {
+                self.od.set(index, sub, v);
+                self.consumer_last = None;
+                self.consumer_timed_out = false;
+            }
+            _ => self.od.set(index, sub, v),
+        }
+    }
+
+    /// Which PDO an object index configures: (direction, number 0..PDOS, is mapping).
+    fn pdo_object(&self, index: u16) -> Option<(Mappable, usize, bool)> {
+        let n = PDOS as u16;
+        let f = |base: u16| {
+            (base..base + n)
+                .contains(&index)
+                .then(|| usize::from(index - base))
+        };
+        if let Some(k) = f(od::TPDO_COMM) {
+            return Some((Mappable::Tpdo, k, false));
+        }
+        if let Some(k) = f(od::TPDO_MAP) {
+            return Some((Mappable::Tpdo, k, true));
+        }
+        if !self.is_drive() {
+            return None;
+        }
+        if let Some(k) = f(od::RPDO_COMM) {
+            return Some((Mappable::Rpdo, k, false));
+        }
+        f(od::RPDO_MAP).map(|k| (Mappable::Rpdo, k, true))
+    }
+
+    fn comm_index(dir: Mappable, k: usize) -> u16 {
+        match dir {
+            Mappable::Rpdo => od::RPDO_COMM + k as u16,
+            _ => od::TPDO_COMM + k as u16,
+        }
+    }
+
+    fn map_index(dir: Mappable, k: usize) -> u16 {
+        match dir {
+            Mappable::Rpdo => od::RPDO_MAP + k as u16,
+            _ => od::TPDO_MAP + k as u16,
+        }
+    }
+
+    fn pdo_valid(&self, dir: Mappable, k: usize) -> bool {
+        self.od.value(Self::comm_index(dir, k), 1) & od::PDO_COB_INVALID == 0
+    }
+
+    fn mapping(&self, dir: Mappable, k: usize) -> ([MapEntry; 8], usize) {
+        let ix = Self::map_index(dir, k);
+        let n = (self.od.value(ix, 0) as usize).min(8);
+        let mut e = [MapEntry::new(0, 0, 0); 8];
+        for (i, slot) in e.iter_mut().enumerate().take(n) {
+            *slot = MapEntry::from_raw(self.od.value(ix, (i + 1) as u8));
+        }
+        (e, n)
+    }
+
+    /// The checks of an SDO download beyond existence, access and size.
+    fn check_write(&self, index: u16, sub: u8, v: u32) -> Result<(), AbortCode> {
+        if let Some((dir, k, is_map)) = self.pdo_object(index) {
+            if !is_map {
+                match sub {
+                    1 => {
+                        let cur = self.od.value(index, 1);
+                        let cur_valid = cur & od::PDO_COB_INVALID == 0;
+                        let new_valid = v & od::PDO_COB_INVALID == 0;
+                        if v & (1 << 29) != 0
+                            || (cur_valid && new_valid && (cur & 0x7FF) != (v & 0x7FF))
+                        {
+                            return Err(AbortCode::InvalidValue);
+                        }
+                    }
+                    2 if !valid_transmission(dir, v as u8) => return Err(AbortCode::InvalidValue),
+                    _ => {}
+                }
+                return Ok(());
+            }
+            if self.pdo_valid(dir, k) {
+                return Err(AbortCode::DeviceState);
+            }
+            if sub != 0 {
+                return if self.od.value(index, 0) != 0 {
+                    Err(AbortCode::DeviceState)
+                } else {
+                    Ok(())
+                };
+            }
+            if v > 8 {
+                return Err(AbortCode::ValueTooHigh);
+            }
+            let mut bits = 0u32;
+            for s in 1..=v as u8 {
+                let e = MapEntry::from_raw(self.od.value(index, s));
+                match self.od.get(e.index, e.sub) {
+                    Some(o) if o.map == dir && u32::from(e.bits) == 8 * u32::from(o.size) => {}
+                    _ => return Err(AbortCode::NotMappable),
+                }
+                bits += u32::from(e.bits);
+            }
+            if bits > 64 {
+                return Err(AbortCode::PdoLength);
+            }
+            return Ok(());
+        }
+        match (index, sub) {
+            (od::MODES_OF_OPERATION, 0) => {
+                let m = v as u8 as i8;
+                if m != 0 && m != od::MODE_CSV {
+                    return Err(AbortCode::InvalidValue);
+                }
+            }
+            (od::ABORT_CONNECTION_OPTION, 0) if (v as u16 as i16) > 3 => {
+                return Err(AbortCode::InvalidValue)
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+
+    fn on_sdo(&mut self, now: Duration, f: &CanFrame, out: &mut impl FnMut(CanFrame)) {
+        let resp = match SdoRequest::parse(f) {
+            Ok((_, SdoRequest::Upload { index, sub })) => match self.od.sdo_read(index, sub) {
+                Ok(data) => SdoResponse::Upload { index, sub, data },
+                Err(code) => SdoResponse::Abort { index, sub, code },
+            },
+            Ok((_, SdoRequest::Download { index, sub, data })) => {
+                let r = self
+                    .od
+                    .sdo_check_write(index, sub, &data)
+                    .and_then(|_| self.check_write(index, sub, data.as_u32()));
+                match r {
+                    Ok(()) => {
+                        self.apply(now, index, sub, data.as_u32(), out);
+                        SdoResponse::DownloadAck { index, sub }
+                    }
+                    Err(code) => SdoResponse::Abort { index, sub, code },
+                }
+            }
+            // The client gave up on a transfer: nothing to answer.
+            Ok((_, SdoRequest::Abort { .. })) => return,
+            Err(_) if f.len() == 8 => {
+                let d = f.data();
+                SdoResponse::Abort {
+                    index: u16::from_le_bytes([d[1], d[2]]),
+                    sub: d[3],
+                    code: AbortCode::InvalidCommand,
+                }
+            }
+            Err(_) => return,
+        };
+        if matches!(resp, SdoResponse::Abort { .. }) {
+            self.stats.sdo_aborted += 1;
+        } else {
+            self.stats.sdo_served += 1;
+        }
+        out(resp.to_frame(self.node));
+    }
+
+    fn reset(&mut self, now: Duration, node_reset: bool) {
+        if node_reset {
+            self.od.reset(0x0000..=0xFFFF);
+            self.last_cw = 0;
+            self.halt = false;
+            self.state = State402::NotReadyToSwitchOn;
+            self.fault_since = None;
+        } else {
+            self.leave_operational(now);
+            self.od.reset(0x1000..=0x1FFF);
+        }
+        self.nmt = DeviceNmt::Initialising;
+        self.boot_at = now + self.boot_time;
+        self.tpdo = [TpdoRun::default(); PDOS];
+        self.rpdo = [RpdoRun::default(); PDOS];
+        self.next_hb = None;
+        self.consumer_last = None;
+        self.consumer_timed_out = false;
+        self.update_statusword();
+    }
+
+    fn leave_operational(&mut self, now: Duration) {
+        if self.nmt == DeviceNmt::Operational {
+            self.connection_reaction(now, COMMUNICATION);
+        }
+    }
+
+    fn on_nmt(&mut self, now: Duration, f: &CanFrame) {
+        let Ok((cmd, node)) = nmt::parse_command(f) else {
+            return;
+        };
+        if node != 0 && node != self.node {
+            return;
+        }
+        self.stats.nmt_commands += 1;
+        match cmd {
+            NmtCommand::Start => {
+                if matches!(self.nmt, DeviceNmt::PreOperational | DeviceNmt::Stopped) {
+                    self.nmt = DeviceNmt::Operational;
+                    self.tpdo = [TpdoRun::default(); PDOS];
+                    self.rpdo = [RpdoRun::default(); PDOS];
+                }
+            }
+            NmtCommand::Stop => {
+                self.leave_operational(now);
+                self.nmt = DeviceNmt::Stopped;
+            }
+            NmtCommand::EnterPreOperational => {
+                self.leave_operational(now);
+                self.nmt = DeviceNmt::PreOperational;
+            }
+            NmtCommand::ResetNode => self.reset(now, true),
+            NmtCommand::ResetCommunication => self.reset(now, false),
+        }
+    }
+
+    /// Updates the process values from the plant's reading at `now`.
+    fn sample(&mut self, now: Duration, s: &SensorReading) {
+        let dt = self
+            .last_sample
+            .map_or(0.0, |t| now.saturating_sub(t).as_secs_f64());
+        self.last_sample = Some(now);
+        match self.app {
+            App::Drive {
+                units,
+                steer,
+                offset,
+            } => {
+                let (rate, pos) = if steer {
+                    let a = match self.last_wrapped {
+                        Some(prev) => self.joint_angle + angle::diff(s.steer_angle, prev),
+                        None => s.steer_angle,
+                    };
+                    self.last_wrapped = Some(s.steer_angle);
+                    self.joint_angle = a;
+                    (s.steer_rate, a - offset)
+                } else {
+                    self.joint_angle += s.wheel_speed * dt;
+                    (s.wheel_speed, self.joint_angle)
+                };
+                let vel = units.velocity_from_si(rate).unwrap_or(if rate > 0.0 {
+                    i32::MAX
+                } else {
+                    i32::MIN
+                });
+                self.od
+                    .set(od::POSITION_ACTUAL, 0, units.rad_to_position(pos) as u32);
+                self.od.set(od::VELOCITY_ACTUAL, 0, vel as u32);
+            }
+            App::Encoder { units } => {
+                self.od.set(
+                    od::POSITION_VALUE,
+                    0,
+                    units.m_to_position(s.leg).unwrap_or(0),
+                );
+                self.od.set(
+                    od::SPEED_VALUE,
+                    1,
+                    u32::from(units.speed_from_si(s.leg_rate) as u16),
+                );
+            }
+        }
+    }
+
+    fn tpdo_values(&self, k: usize) -> ([u32; 8], [MapEntry; 8], usize) {
+        let (entries, n) = self.mapping(Mappable::Tpdo, k);
+        let mut v = [0u32; 8];
+        for (o, e) in v.iter_mut().zip(&entries[..n]) {
+            *o = self.od.value(e.index, e.sub);
+        }
+        (v, entries, n)
+    }
+
+    fn send_tpdo(&mut self, now: Duration, k: usize, out: &mut impl FnMut(CanFrame)) {
+        let (values, entries, n) = self.tpdo_values(k);
+        let mut data = [0u8; 8];
+        let len = pdo::pack_into(&entries[..n], &values[..n], &mut data);
+        let id = (self.od.value(Self::comm_index(Mappable::Tpdo, k), 1) & 0x7FF) as u16;
+        if let Ok(f) = CanFrame::new(id, &data[..len]) {
+            self.stats.tpdos_sent += 1;
+            out(f);
+        }
+        let t = &mut self.tpdo[k];
+        t.last_sent = Some(now);
+        t.last_values = values;
+    }
+
+    /// Event-driven TPDOs: sent on a change (inhibit time permitting) and every event-timer
+    /// period.
+    fn event_tpdos(&mut self, now: Duration, out: &mut impl FnMut(CanFrame)) {
+        if self.nmt != DeviceNmt::Operational {
+            return;
+        }
+        for k in 0..PDOS {
+            if !self.pdo_valid(Mappable::Tpdo, k) {
+                continue;
+            }
+            let comm = Self::comm_index(Mappable::Tpdo, k);
+            let ty = self.od.value(comm, 2) as u8;
+            if ty < 254 {
+                continue;
+            }
+            let inhibit = Duration::from_micros(100 * u64::from(self.od.value(comm, 3)));
+            let timer = ms(self.od.value(comm, 5));
+            let (values, _, _) = self.tpdo_values(k);
+            let t = self.tpdo[k];
+            let due = match t.last_sent {
+                None => true,
+                Some(last) => {
+                    (values != t.last_values && now >= last + inhibit)
+                        || (!timer.is_zero() && now >= last + timer)
+                }
+            };
+            if due {
+                self.send_tpdo(now, k, out);
+            }
+        }
+    }
+
+    fn on_sync(&mut self, now: Duration, s: &SensorReading, out: &mut impl FnMut(CanFrame)) {
+        if self.nmt != DeviceNmt::Operational {
+            return;
+        }
+        self.stats.syncs += 1;
+        self.sample(now, s);
+        // Synchronous RPDOs act now, then the synchronous TPDOs sample.
+        for k in 0..PDOS {
+            if let Some(values) = self.rpdo[k].pending.take() {
+                self.apply_rpdo(now, k, &values, out);
+            }
+        }
+        for k in 0..PDOS {
+            if !self.pdo_valid(Mappable::Tpdo, k) {
+                continue;
+            }
+            let ty = self.od.value(Self::comm_index(Mappable::Tpdo, k), 2) as u8;
+            match ty {
+                0 => {
+                    let (values, _, _) = self.tpdo_values(k);
+                    if self.tpdo[k].last_sent.is_none() || values != self.tpdo[k].last_values {
+                        self.send_tpdo(now, k, out);
+                    }
+                }
+                1..=240 => {
+                    let t = &mut self.tpdo[k];
+                    t.sync_count = t.sync_count.saturating_add(1);
+                    if t.sync_count >= ty {
+                        t.sync_count = 0;
+                        self.send_tpdo(now, k, out);
+                    }
+                }
+                _ => {}
+            }
+        }
+        self.event_tpdos(now, out);
+    }
+
+    fn apply_rpdo(
+        &mut self,
+        now: Duration,
+        k: usize,
+        values: &[u32; 8],
+        out: &mut impl FnMut(CanFrame),
+    ) {
+        let (entries, n) = self.mapping(Mappable::Rpdo, k);
+        for (e, v) in entries[..n].iter().zip(values) {
+            if self
+                .od
+                .get(e.index, e.sub)
+                .is_some_and(|o| o.map == Mappable::Rpdo)
+            {
+                self.apply(now, e.index, e.sub, *v, out);
+            }
+        }
+    }
+
+    fn on_rpdo(&mut self, now: Duration, k: usize, f: &CanFrame, out: &mut impl FnMut(CanFrame)) {
+        let (entries, n) = self.mapping(Mappable::Rpdo, k);
+        let values = match pdo::unpack(&entries[..n], f) {
+            Ok(v) => v,
+            Err(_) => {
+                self.stats.rpdo_length_errors += 1;
+                self.emcy(codes::PDO_LENGTH, 0x11, out);
+                return;
+            }
+        };
+        self.stats.rpdos_received += 1;
+        let r = &mut self.rpdo[k];
+        r.last_rx = Some(now);
+        r.timed_out = false;
+        let ty = self.od.value(Self::comm_index(Mappable::Rpdo, k), 2) as u8;
+        if ty <= 240 {
+            r.pending = Some(values);
+        } else {
+            self.apply_rpdo(now, k, &values, out);
+            self.event_tpdos(now, out);
+        }
+    }
+
+    /// A frame on the bus at `now`; `s` is the wheel's current encoder reading.
+    pub fn handle_frame(
+        &mut self,
+        now: Duration,
+        f: &CanFrame,
+        s: &SensorReading,
+        out: &mut impl FnMut(CanFrame),
+    ) {
+        if self.nmt == DeviceNmt::Initialising {
+            // Only a reset restarts an initialisation; nothing else is heard.
+            if f.id() == cob::NMT {
+                self.on_nmt(now, f);
+            }
+            self.finish_boot(now, out);
+            return;
+        }
+        match cob::classify(f.id()) {
+            Cob::Nmt => self.on_nmt(now, f),
+            Cob::Sync if nmt::is_sync(f) => self.on_sync(now, s, out),
+            Cob::SdoRx(n) if n == self.node => {
+                if matches!(self.nmt, DeviceNmt::PreOperational | DeviceNmt::Operational) {
+                    self.on_sdo(now, f, out);
+                }
+            }
+            Cob::Heartbeat(n) => {
+                let c = self.od.value(od::CONSUMER_HEARTBEAT, 1);
+                if self.is_drive() && c & 0xFFFF != 0 && ((c >> 16) & 0x7F) as u8 == n {
+                    self.consumer_last = Some(now);
+                    self.consumer_timed_out = false;
+                }
+            }
+            _ if self.nmt == DeviceNmt::Operational && self.is_drive() => {
+                for k in 0..PDOS {
+                    let cob_id = self.od.value(Self::comm_index(Mappable::Rpdo, k), 1);
+                    if cob_id & od::PDO_COB_INVALID == 0 && (cob_id & 0x7FF) as u16 == f.id() {
+                        self.on_rpdo(now, k, f, out);
+                        break;
+                    }
+                }
+            }
+            _ => {}
+        }
+        self.finish_boot(now, out);
+    }
+
+    fn finish_boot(&mut self, now: Duration, out: &mut impl FnMut(CanFrame)) {
+        if self.nmt != DeviceNmt::Initialising || now < self.boot_at {
+            return;
+        }
+        self.nmt = DeviceNmt::PreOperational;
+        self.stats.boot_ups += 1;
+        out(nmt::heartbeat(self.node, NmtState::BootUp));
+        if self.is_drive() && self.state == State402::NotReadyToSwitchOn {
+            self.set_state(now, State402::SwitchOnDisabled);
+        }
+        let p = self.od.value(od::PRODUCER_HEARTBEAT, 0);
+        self.next_hb = (p != 0).then(|| now + ms(p));
+    }
+
+    /// Time-driven work at `now`: boot completion, fault reaction, heartbeat production and
+    /// consumption, RPDO deadlines, event-driven TPDOs; `s` is the wheel's encoder reading.
+    pub fn tick(&mut self, now: Duration, s: &SensorReading, out: &mut impl FnMut(CanFrame)) {
+        self.sample(now, s);
+        self.finish_boot(now, out);
+        if self.nmt == DeviceNmt::Initialising {
+            return;
+        }
+        if let Some(since) = self.fault_since {
+            if self.state == State402::FaultReactionActive && now > since {
+                self.set_state(now, State402::Fault);
+            }
+        }
+        if let (Some(next), Some(state)) = (self.next_hb, self.nmt.heartbeat()) {
+            if now >= next {
+                let p = ms(self.od.value(od::PRODUCER_HEARTBEAT, 0));
+                self.stats.heartbeats_sent += 1;
+                out(nmt::heartbeat(self.node, state));
+                self.next_hb = Some(if now >= next + p { now + p } else { next + p });
+            }
+        }
+        if self.is_drive() {
+            let c = self.od.value(od::CONSUMER_HEARTBEAT, 1);
+            let timeout = ms(c & 0xFFFF);
+            if let Some(last) = self.consumer_last {
+                if !timeout.is_zero() && !self.consumer_timed_out && now > last + timeout {
+                    self.consumer_timed_out = true;
+                    self.stats.heartbeat_timeouts += 1;
+                    self.comm_loss(now, codes::HEARTBEAT, out);
+                }
+            }
+            if self.nmt == DeviceNmt::Operational {
+                for k in 0..PDOS {
+                    let timer = ms(self.od.value(Self::comm_index(Mappable::Rpdo, k), 5));
+                    let r = self.rpdo[k];
+                    if let (false, Some(last), false) = (timer.is_zero(), r.last_rx, r.timed_out) {
+                        if self.pdo_valid(Mappable::Rpdo, k) && now > last + timer {
+                            self.rpdo[k].timed_out = true;
+                            self.stats.rpdo_timeouts += 1;
+                            self.comm_loss(now, codes::RPDO_TIMEOUT, out);
+                        }
+                    }
+                }
+            }
+        }
+        self.event_tpdos(now, out);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rollbase_driver::canopen::config::{for_node, SdoOp};
+    use rollbase_driver::canopen::sdo::SdoData;
+
+    const BOOT: Duration = Duration::from_millis(5);
+
+    /// One device, a clock and what it sent.
+    struct Rig {
+        dev: Device,
+        t: Duration,
+        sensors: SensorReading,
+        sent: Vec<CanFrame>,
+    }
+
+    fn at_ms(v: u64) -> Duration {
+        Duration::from_millis(v)
+    }
+
+    impl Rig {
+        /// Device `role` of wheel 0 of the default configuration, booted (boot-up taken).
+        fn booted(role: Role) -> Rig {
+            let cfg = Cia402Config::default();
+            let mut r = Rig {
+                dev: Device::new(&cfg, 0, role, BOOT),
+                t: Duration::ZERO,
+                sensors: SensorReading {
+                    leg: 0.465,
+                    ..SensorReading::default()
+                },
+                sent: Vec::new(),
+            };
+            r.advance(BOOT);
+            let node = r.dev.node();
+            assert_eq!(r.take(), vec![nmt::heartbeat(node, NmtState::BootUp)]);
+            r
+        }
+
+        fn node(&self) -> u8 {
+            self.dev.node()
+        }
+
+        /// Ticks every millisecond up to `t + d`.
+        fn advance(&mut self, d: Duration) {
+            let end = self.t + d;
+            while self.t < end {
+                self.t = (self.t + at_ms(1)).min(end);
+                let sent = &mut self.sent;
+                self.dev.tick(self.t, &self.sensors, &mut |f| sent.push(f));
+            }
+        }
+
+        fn frame(&mut self, f: CanFrame) {
+            let sent = &mut self.sent;
+            self.dev
+                .handle_frame(self.t, &f, &self.sensors, &mut |f| sent.push(f));
+        }
+
+        fn take(&mut self) -> Vec<CanFrame> {
+            std::mem::take(&mut self.sent)
+        }
+
+        fn take_id(&mut self, id: u16) -> Vec<CanFrame> {
+            let (hit, rest): (Vec<CanFrame>, Vec<CanFrame>) =
+                self.take().into_iter().partition(|f| f.id() == id);
+            self.sent = rest;
+            hit
+        }
+
+        fn sdo(&mut self, req: SdoRequest) -> Option<SdoResponse> {
+            let node = self.node();
+            self.frame(req.to_frame(node));
+            let replies = self.take_id(cob::sdo_tx(node));
+            assert!(replies.len() <= 1, "{replies:?}");
+            replies
+                .first()
+                .map(|f| SdoResponse::parse(f).expect("SDO response").1)
+        }
+
+        fn write(&mut self, index: u16, sub: u8, data: SdoData) -> Result<(), AbortCode> {
+            match self.sdo(SdoRequest::Download { index, sub, data }) {
+                Some(SdoResponse::DownloadAck { .. }) => Ok(()),
+                Some(SdoResponse::Abort { code, .. }) => Err(code),
+                other => panic!("download {index:04X}:{sub}: {other:?}"),
+            }
+        }
+
+        fn read(&mut self, index: u16, sub: u8) -> Result<u32, AbortCode> {
+            match self.sdo(SdoRequest::Upload { index, sub }) {
+                Some(SdoResponse::Upload { data, .. }) => Ok(data.as_u32()),
+                Some(SdoResponse::Abort { code, .. }) => Err(code),
+                other => panic!("upload {index:04X}:{sub}: {other:?}"),
+            }
+        }
+
+        /// The master's boot plan for this device, every step accepted.
+        fn configure(&mut self) {
+            let cfg = Cia402Config::default();
+            for op in cfg.plan(self.dev.role(), 4000) {
+                match for_node(op, self.node()) {
+                    SdoOp::Write { index, sub, data } => {
+                        assert_eq!(self.write(index, sub, data), Ok(()), "{index:04X}:{sub}")
+                    }
+                    SdoOp::Verify {
+                        index,
+                        sub,
+                        mask,
+                        expected,
+                        what,
+                    } => assert_eq!(
+                        self.read(index, sub).map(|v| v & mask),
+                        Ok(expected),
+                        "{what}"
+                    ),
+                }
+            }
+        }
+
+        fn nmt(&mut self, cmd: NmtCommand) {
+            self.frame(nmt::command(cmd, self.node()));
+        }
+
+        fn sync(&mut self) {
+            self.frame(nmt::sync());
+        }
+
+        fn rpdo1(&mut self, cw: u16, vel: i32) {
+            let mut d = [0u8; 6];
+            d[..2].copy_from_slice(&cw.to_le_bytes());
+            d[2..].copy_from_slice(&vel.to_le_bytes());
+            let id = cob::rpdo(1, self.node());
+            self.frame(CanFrame::new(id, &d).expect("frame"));
+        }
+
+        fn emcys(&mut self) -> Vec<Emcy> {
+            let id = cob::emcy(self.node());
+            self.take_id(id)
+                .iter()
+                .map(|f| Emcy::parse(f).expect("EMCY").1)
+                .collect()
+        }
+
+        /// Configured, operational and in operation enabled through RPDO1 (synchronous).
+        fn enabled_drive(role: Role) -> Rig {
+            let mut r = Rig::booted(role);
+            r.configure();
+            r.nmt(NmtCommand::Start);
+            for cw in [0x06, 0x07, 0x0F] {
+                r.rpdo1(cw, 0);
+                r.sync();
+            }
+            assert_eq!(r.dev.state402(), State402::OperationEnabled);
+            r.take();
+            r
+        }
+    }
+
+    #[test]
+    fn boots_after_its_boot_time_and_resets_restore_their_areas() {
+        let cfg = Cia402Config::default();
+        let mut d = Device::new(&cfg, 0, Role::Drive, BOOT);
+        let mut out = Vec::new();
+        let s = SensorReading::default();
+        // Initialising: deaf to SDO, silent.
+        d.handle_frame(
+            at_ms(1),
+            &SdoRequest::Upload {
+                index: 0x1000,
+                sub: 0,
+            }
+            .to_frame(d.node()),
+            &s,
+            &mut |f| out.push(f),
+        );
+        d.tick(at_ms(4), &s, &mut |f| out.push(f));
+        assert!(out.is_empty(), "{out:?}");
+        assert_eq!(d.nmt(), DeviceNmt::Initialising);
+        d.tick(at_ms(5), &s, &mut |f| out.push(f));
+        assert_eq!(out, vec![nmt::heartbeat(d.node(), NmtState::BootUp)]);
+        assert_eq!(d.nmt(), DeviceNmt::PreOperational);
+        assert_eq!(d.state402(), State402::SwitchOnDisabled);
+
+        let mut r = Rig::booted(Role::Drive);
+        r.write(od::PRODUCER_HEARTBEAT, 0, SdoData::u16(20))
+            .unwrap();
+        r.write(od::MODES_OF_OPERATION, 0, SdoData::i8(9)).unwrap();
+        // Reset communication: 0x1000–0x1FFF back to defaults, the application area kept.
+        r.nmt(NmtCommand::ResetCommunication);
+        assert_eq!(r.dev.nmt(), DeviceNmt::Initialising);
+        r.advance(BOOT);
+        assert_eq!(
+            r.take(),
+            vec![nmt::heartbeat(r.node(), NmtState::BootUp)],
+            "one boot-up and no heartbeat (0x1017 back to 0)"
+        );
+        assert_eq!(r.read(od::PRODUCER_HEARTBEAT, 0), Ok(0));
+        assert_eq!(r.read(od::MODES_OF_OPERATION, 0), Ok(9));
+        // Reset node: everything back.
+        r.nmt(NmtCommand::ResetNode);
+        r.advance(BOOT);
+        r.take();
+        assert_eq!(r.read(od::MODES_OF_OPERATION, 0), Ok(0));
+    }
+
+    #[test]
+    fn sdo_server_aborts_with_the_cia301_codes() {
+        let mut r = Rig::booted(Role::Drive);
+        assert_eq!(r.read(0x1234, 0), Err(AbortCode::NoObject));
+        assert_eq!(
+            r.read(od::MODES_OF_OPERATION, 5),
+            Err(AbortCode::NoSubIndex)
+        );
+        assert_eq!(
+            r.write(od::STATUSWORD, 0, SdoData::u16(6)),
+            Err(AbortCode::ReadOnly)
+        );
+        assert_eq!(
+            r.write(od::PRODUCER_HEARTBEAT, 0, SdoData::u32(100)),
+            Err(AbortCode::LengthMismatch)
+        );
+        assert_eq!(
+            r.write(od::MODES_OF_OPERATION, 0, SdoData::i8(3)),
+            Err(AbortCode::InvalidValue),
+            "only cyclic synchronous velocity is emulated"
+        );
+        assert_eq!(
+            r.write(od::ABORT_CONNECTION_OPTION, 0, SdoData::i16(4)),
+            Err(AbortCode::InvalidValue)
+        );
+        // A segmented download initiate (no e bit) is answered with "command not valid".
+        let mut seg = [0u8; 8];
+        seg[0] = 0x21;
+        seg[1..3].copy_from_slice(&od::PRODUCER_HEARTBEAT.to_le_bytes());
+        seg[4] = 2;
+        let node = r.node();
+        r.frame(CanFrame::new(cob::sdo_rx(node), &seg).unwrap());
+        let reply = r.take_id(cob::sdo_tx(node));
+        assert_eq!(
+            SdoResponse::parse(&reply[0]).unwrap().1,
+            SdoResponse::Abort {
+                index: od::PRODUCER_HEARTBEAT,
+                sub: 0,
+                code: AbortCode::InvalidCommand
+            }
+        );
+        // Other nodes' requests are not answered; the value written last is read back.
+        r.frame(
+            SdoRequest::Upload {
+                index: 0x1000,
+                sub: 0,
+            }
+            .to_frame(node + 1),
+        );
+        assert!(r.take().is_empty());
+        r.write(od::PRODUCER_HEARTBEAT, 0, SdoData::u16(250))
+            .unwrap();
+        assert_eq!(r.read(od::PRODUCER_HEARTBEAT, 0), Ok(250));
+        assert_eq!(r.dev.stats().sdo_aborted, 7);
+        // An encoder has no drive objects.
+        let mut e = Rig::booted(Role::Leg);
+        assert_eq!(e.read(od::CONTROLWORD, 0), Err(AbortCode::NoObject));
+        assert_eq!(e.read(od::MEASURING_STEP, 1), Ok(1000));
+    }
+
+    #[test]
+    fn pdo_mapping_follows_the_cia301_order_and_checks_entries() {
+        let mut r = Rig::booted(Role::Drive);
+        let comm = od::TPDO_COMM + 1;
+        let map = od::TPDO_MAP + 1;
+        let entry = |ix: u16, sub: u8, bits: u8| SdoData::u32(MapEntry::new(ix, sub, bits).raw());
+        // TPDO1 is valid after boot: its mapping is locked.
+        assert_eq!(
+            r.write(od::TPDO_MAP, 0, SdoData::u8(0)),
+            Err(AbortCode::DeviceState)
+        );
+        // TPDO2 is invalid: entries need sub 0 = 0 first.
+        r.write(map, 0, SdoData::u8(0)).unwrap();
+        r.write(map, 1, entry(od::VELOCITY_ACTUAL, 0, 32)).unwrap();
+        r.write(map, 2, entry(od::POSITION_ACTUAL, 0, 32)).unwrap();
+        r.write(map, 3, entry(od::STATUSWORD, 0, 16)).unwrap();
+        assert_eq!(r.write(map, 0, SdoData::u8(3)), Err(AbortCode::PdoLength));
+        assert_eq!(
+            r.write(map, 0, SdoData::u8(9)),
+            Err(AbortCode::ValueTooHigh)
+        );
+        r.write(map, 3, entry(od::TARGET_VELOCITY, 0, 32)).unwrap();
+        r.write(map, 2, entry(od::STATUSWORD, 0, 16)).unwrap();
+        assert_eq!(
+            r.write(map, 0, SdoData::u8(3)),
+            Err(AbortCode::NotMappable),
+            "target velocity is an RPDO object"
+        );
+        r.write(map, 2, entry(od::STATUSWORD, 0, 32)).unwrap();
+        assert_eq!(
+            r.write(map, 0, SdoData::u8(2)),
+            Err(AbortCode::NotMappable),
+            "the entry's length must be the object's"
+        );
+        r.write(map, 2, entry(od::STATUSWORD, 0, 16)).unwrap();
+        r.write(map, 0, SdoData::u8(2)).unwrap();
+        assert_eq!(
+            r.write(map, 1, entry(od::STATUSWORD, 0, 16)),
+            Err(AbortCode::DeviceState),
+            "entries are locked while sub 0 is not 0"
+        );
+        let cob_id = cob::tpdo(2, r.node());
+        r.write(comm, 2, SdoData::u8(1)).unwrap();
+        assert_eq!(
+            r.write(comm, 2, SdoData::u8(245)),
+            Err(AbortCode::InvalidValue)
+        );
+        r.write(
+            comm,
+            1,
+            SdoData::u32(od::PDO_COB_NO_RTR | u32::from(cob_id)),
+        )
+        .unwrap();
+        assert_eq!(
+            r.write(comm, 1, SdoData::u32(u32::from(cob_id) + 1)),
+            Err(AbortCode::InvalidValue),
+            "the COB-ID of a valid PDO cannot change"
+        );
+        // Operational: the SYNC samples exactly that layout.
+        r.sensors.wheel_speed = 2.0;
+        r.nmt(NmtCommand::Start);
+        r.advance(at_ms(2));
+        r.take();
+        r.sync();
+        let tpdo = r.take_id(cob_id);
+        assert_eq!(tpdo.len(), 1);
+        let d = tpdo[0].data();
+        assert_eq!(d.len(), 6);
+        let units = Cia402Config::default().drive;
+        assert_eq!(
+            i32::from_le_bytes([d[0], d[1], d[2], d[3]]),
+            units.velocity_from_si(2.0).unwrap()
+        );
+        assert_eq!(u16::from_le_bytes([d[4], d[5]]), r.dev.statusword());
+    }
+
+    #[test]
+    fn synchronous_tpdos_go_out_every_nth_sync_only_when_operational() {
+        let mut r = Rig::booted(Role::Leg);
+        r.configure();
+        let id = cob::tpdo(1, r.node());
+        r.write(
+            od::TPDO_COMM,
+            1,
+            SdoData::u32(od::PDO_COB_INVALID | u32::from(id)),
+        )
+        .unwrap();
+        r.write(od::TPDO_COMM, 2, SdoData::u8(3)).unwrap();
+        r.write(od::TPDO_COMM, 1, SdoData::u32(u32::from(id)))
+            .unwrap();
+        r.sync();
+        assert!(r.take_id(id).is_empty(), "no PDO in pre-operational");
+        r.nmt(NmtCommand::Start);
+        let mut per_sync = Vec::new();
+        for _ in 0..9 {
+            r.sync();
+            per_sync.push(r.take_id(id).len());
+        }
+        assert_eq!(per_sync, [0, 0, 1, 0, 0, 1, 0, 0, 1]);
+        // The encoder's layout: position value in 1 µm steps, speed in its step.
+        r.sensors.leg = 0.4321;
+        r.sensors.leg_rate = 0.01;
+        r.sync();
+        r.sync();
+        r.sync();
+        let f = r.take_id(id);
+        let d = f[0].data();
+        assert_eq!(u32::from_le_bytes([d[0], d[1], d[2], d[3]]), 432_100);
+        let units = Cia402Config::default().leg_encoder;
+        assert_eq!(i16::from_le_bytes([d[4], d[5]]), units.speed_from_si(0.01));
+        r.nmt(NmtCommand::Stop);
+        for _ in 0..3 {
+            r.sync();
+        }
+        assert!(r.take_id(id).is_empty(), "no PDO when stopped");
+    }
+
+    #[test]
+    fn event_driven_statusword_respects_inhibit_and_event_timer() {
+        let mut r = Rig::booted(Role::Steer);
+        r.configure();
+        let cfg = Cia402Config::default();
+        let status = cob::tpdo(2, r.node());
+        r.nmt(NmtCommand::Start);
+        r.advance(at_ms(1));
+        assert_eq!(r.take_id(status).len(), 1, "first transmission on start");
+        r.advance(at_ms(3));
+        assert!(r.take_id(status).is_empty(), "no change, no transmission");
+        // Two changes 0.5 ms apart: the second waits for the inhibit time (1 ms).
+        r.rpdo1(0x06, 0);
+        r.sync();
+        assert_eq!(r.take_id(status).len(), 1);
+        r.t += Duration::from_micros(500);
+        r.rpdo1(0x07, 0);
+        r.sync();
+        assert!(r.take_id(status).is_empty(), "inhibited");
+        r.advance(at_ms(1));
+        let f = r.take_id(status);
+        assert_eq!(f.len(), 1);
+        assert_eq!(
+            u16::from_le_bytes([f[0].data()[0], f[0].data()[1]]) & 0x6F,
+            0x23,
+            "switched on"
+        );
+        // Unchanged: again after the event timer, not sooner.
+        let timer = u64::from(cfg.status_event_timer_ms);
+        r.advance(at_ms(timer - 2));
+        assert!(r.take_id(status).is_empty());
+        r.advance(at_ms(2));
+        assert_eq!(r.take_id(status).len(), 1);
+        assert_eq!(
+            cfg.status_inhibit_100us, 10,
+            "the test assumes 1 ms inhibit"
+        );
+    }
+
+    #[test]
+    fn synchronous_rpdo_acts_at_the_next_sync_asynchronous_at_once() {
+        let mut r = Rig::enabled_drive(Role::Drive);
+        let units = Cia402Config::default().drive;
+        let v = units.velocity_from_si(3.0).unwrap();
+        r.rpdo1(0x0F, v);
+        assert_eq!(r.dev.motor(), Some(0.0), "type 1: held until the SYNC");
+        r.sync();
+        assert!((r.dev.motor().unwrap() - 3.0).abs() < 1e-3);
+        // Asynchronous (255): applied on reception.
+        let comm = od::RPDO_COMM;
+        let id = u32::from(cob::rpdo(1, r.node()));
+        r.write(comm, 1, SdoData::u32(od::PDO_COB_INVALID | id))
+            .unwrap();
+        r.write(comm, 2, SdoData::u8(255)).unwrap();
+        r.write(comm, 1, SdoData::u32(id)).unwrap();
+        r.rpdo1(0x0F, -v);
+        assert!((r.dev.motor().unwrap() + 3.0).abs() < 1e-3);
+        // A wrong length is dropped with EMCY 0x8210.
+        let node = r.node();
+        r.frame(CanFrame::new(cob::rpdo(1, node), &[0x0F, 0, 0, 0]).unwrap());
+        assert!((r.dev.motor().unwrap() + 3.0).abs() < 1e-3);
+        assert_eq!(r.emcys(), vec![Emcy::new(codes::PDO_LENGTH, 0x11)]);
+        assert_eq!(r.dev.stats().rpdo_length_errors, 1);
+    }
+
+    #[test]
+    fn motor_follows_only_in_operation_enabled_csv_without_halt() {
+        let mut r = Rig::booted(Role::Drive);
+        r.configure();
+        r.nmt(NmtCommand::Start);
+        let v = Cia402Config::default().drive.velocity_from_si(1.0).unwrap();
+        let mut seen = Vec::new();
+        for cw in [0x06, 0x07, 0x0F, 0x010F, 0x0F, 0x07] {
+            r.rpdo1(cw, v);
+            r.sync();
+            seen.push((r.dev.state402(), r.dev.motor().is_some()));
+        }
+        use State402::*;
+        assert_eq!(
+            seen,
+            [
+                (ReadyToSwitchOn, false),
+                (SwitchedOn, false),
+                (OperationEnabled, true),
+                (OperationEnabled, false), // halt
+                (OperationEnabled, true),
+                (SwitchedOn, false),
+            ]
+        );
+        // Modes of operation 0 (none): enabled but not following.
+        r.rpdo1(0x0F, v);
+        r.sync();
+        r.write(od::MODES_OF_OPERATION, 0, SdoData::i8(0)).unwrap();
+        assert_eq!(r.dev.state402(), OperationEnabled);
+        assert_eq!(r.dev.motor(), None);
+        assert_eq!(r.dev.statusword() & ds402::SW_FOLLOWS_COMMAND, 0);
+    }
+
+    #[test]
+    fn heartbeat_producer_sends_the_nmt_state_at_its_period() {
+        let mut r = Rig::booted(Role::Leg);
+        let hb = cob::heartbeat(r.node());
+        r.write(od::PRODUCER_HEARTBEAT, 0, SdoData::u16(20))
+            .unwrap();
+        r.advance(at_ms(100));
+        let got = r.take_id(hb);
+        assert_eq!(got.len(), 5);
+        assert!(got.iter().all(|f| f.data() == [0x7F]), "pre-operational");
+        r.nmt(NmtCommand::Start);
+        r.advance(at_ms(40));
+        let got = r.take_id(hb);
+        assert_eq!(got.len(), 2);
+        assert!(got.iter().all(|f| f.data() == [0x05]), "operational");
+        r.nmt(NmtCommand::Stop);
+        r.advance(at_ms(20));
+        assert_eq!(r.take_id(hb)[0].data(), [0x04]);
+    }
+
+    #[test]
+    fn master_heartbeat_loss_is_reported_once_and_faults_an_enabled_drive() {
+        let mut r = Rig::enabled_drive(Role::Drive);
+        let cfg = Cia402Config::default();
+        let master_hb = nmt::heartbeat(cfg.master_node, NmtState::Operational);
+        // Keep the RPDO deadline out of the way: asynchronous RPDOs, no deadline.
+        let id = u32::from(cob::rpdo(1, r.node()));
+        r.write(od::RPDO_COMM, 1, SdoData::u32(od::PDO_COB_INVALID | id))
+            .unwrap();
+        r.write(od::RPDO_COMM, 5, SdoData::u16(0)).unwrap();
+        r.write(od::RPDO_COMM, 1, SdoData::u32(id)).unwrap();
+        for _ in 0..5 {
+            r.frame(master_hb);
+            r.advance(at_ms(20));
+        }
+        assert!(r.emcys().is_empty());
+        let timeout = u64::from(cfg.device_heartbeat_timeout_ms);
+        r.advance(at_ms(timeout - 20));
+        assert!(r.emcys().is_empty(), "not before the consumer time");
+        r.advance(at_ms(1));
+        assert_eq!(r.emcys(), vec![Emcy::new(codes::HEARTBEAT, 0x11)]);
+        assert_eq!(r.dev.state402(), State402::FaultReactionActive);
+        r.advance(at_ms(1));
+        assert_eq!(r.dev.state402(), State402::Fault);
+        assert_eq!(r.dev.motor(), None);
+        assert_eq!(r.read(ERROR_CODE, 0), Ok(u32::from(codes::HEARTBEAT)));
+        r.advance(at_ms(500));
+        assert!(r.emcys().is_empty(), "reported once");
+        assert_eq!(r.dev.stats().heartbeat_timeouts, 1);
+    }
+
+    #[test]
+    fn rpdo_deadline_applies_the_abort_connection_option() {
+        for (option, expected) in [
+            (1i16, State402::Fault),
+            (2, State402::SwitchOnDisabled),
+            (3, State402::QuickStopActive),
+            (0, State402::OperationEnabled),
+        ] {
+            let mut r = Rig::enabled_drive(Role::Steer);
+            r.write(od::ABORT_CONNECTION_OPTION, 0, SdoData::i16(option))
+                .unwrap();
+            let deadline = u64::from(Cia402Config::default().rpdo_timeout_ms);
+            r.rpdo1(0x0F, 0);
+            r.advance(at_ms(deadline));
+            assert!(r.emcys().is_empty(), "option {option}: not yet");
+            r.advance(at_ms(2));
+            assert_eq!(
+                r.emcys(),
+                vec![Emcy::new(codes::RPDO_TIMEOUT, 0x11)],
+                "option {option}"
+            );
+            assert_eq!(r.dev.state402(), expected, "option {option}");
+            // The RPDO coming back re-arms the deadline.
+            r.rpdo1(0x0F, 0);
+            r.advance(at_ms(deadline + 2));
+            assert_eq!(r.emcys().len(), 1, "option {option}: re-armed");
+        }
+    }
+
+    #[test]
+    fn injected_fault_and_fault_reset_send_their_emcys() {
+        let mut r = Rig::enabled_drive(Role::Drive);
+        let t = r.t;
+        let sent = &mut r.sent;
+        r.dev
+            .inject_fault(t, codes::OVERCURRENT, &mut |f| sent.push(f));
+        assert_eq!(r.emcys(), vec![Emcy::new(codes::OVERCURRENT, 0x03)]);
+        assert_eq!(r.read(od::ERROR_REGISTER, 0), Ok(0x03));
+        r.advance(at_ms(1));
+        assert_eq!(r.dev.state402(), State402::Fault);
+        assert_eq!(r.dev.statusword() & 0x4F, 0x08);
+        // Fault reset is the rising edge of bit 7.
+        r.rpdo1(0x80, 0);
+        r.sync();
+        assert_eq!(r.dev.state402(), State402::SwitchOnDisabled);
+        assert_eq!(r.emcys(), vec![Emcy::new(codes::NO_ERROR, 0)]);
+        assert_eq!(r.read(od::ERROR_REGISTER, 0), Ok(0));
+        r.rpdo1(0x80, 0);
+        r.sync();
+        assert!(r.emcys().is_empty(), "held bit 7 is not another reset");
+        // An encoder ignores fault injection.
+        let mut e = Rig::booted(Role::Leg);
+        let t = e.t;
+        let sent = &mut e.sent;
+        e.dev
+            .inject_fault(t, codes::OVERCURRENT, &mut |f| sent.push(f));
+        assert!(e.take().is_empty());
+    }
+
+    #[test]
+    fn reset_communication_keeps_the_drive_state_reset_node_restarts_it() {
+        let mut r = Rig::enabled_drive(Role::Drive);
+        r.write(od::ABORT_CONNECTION_OPTION, 0, SdoData::i16(2))
+            .unwrap();
+        // Operation enabled and operational: the reset is a departure from operational.
+        r.nmt(NmtCommand::ResetCommunication);
+        r.advance(BOOT);
+        assert_eq!(r.dev.nmt(), DeviceNmt::PreOperational);
+        assert_eq!(r.dev.state402(), State402::SwitchOnDisabled, "0x6007 = 2");
+        // A drive in fault stays in fault across a reset communication …
+        let t = r.t;
+        let sent = &mut r.sent;
+        r.dev
+            .inject_fault(t, codes::OVERCURRENT, &mut |f| sent.push(f));
+        r.advance(at_ms(1));
+        r.nmt(NmtCommand::ResetCommunication);
+        r.advance(BOOT);
+        assert_eq!(r.dev.state402(), State402::Fault);
+        assert_eq!(r.read(ERROR_CODE, 0), Ok(u32::from(codes::OVERCURRENT)));
+        // … and a reset node restarts it.
+        r.nmt(NmtCommand::ResetNode);
+        r.advance(BOOT);
+        assert_eq!(r.dev.state402(), State402::SwitchOnDisabled);
+        assert_eq!(r.read(ERROR_CODE, 0), Ok(0));
+    }
+
+    #[test]
+    fn leaving_operational_while_enabled_applies_the_reaction() {
+        let mut r = Rig::enabled_drive(Role::Drive);
+        r.nmt(NmtCommand::EnterPreOperational);
+        r.advance(at_ms(1));
+        assert_eq!(r.dev.state402(), State402::Fault);
+        assert_eq!(r.read(ERROR_CODE, 0), Ok(u32::from(COMMUNICATION)));
+        // Broadcast NMT (node 0) reaches every device; other nodes' commands do not.
+        let mut e = Rig::booted(Role::Leg);
+        e.frame(nmt::command(NmtCommand::Start, e.node() + 1));
+        assert_eq!(e.dev.nmt(), DeviceNmt::PreOperational);
+        e.frame(nmt::command(NmtCommand::Start, 0));
+        assert_eq!(e.dev.nmt(), DeviceNmt::Operational);
+    }
+}
