@@ -405,6 +405,15 @@ impl Link {
         }
     }
 
+    /// Frames that hand the devices back at the clean end of a run, after the drives were
+    /// disabled. Native: none (a module without setpoints goes to Ready by itself). CiA 402:
+    /// NMT reset communication to every device ([`Master::release`]).
+    pub fn release(&mut self, out: &mut FrameBuf) {
+        if let Link::Cia402(l) = self {
+            l.master.release(out);
+        }
+    }
+
     /// Cycles before the end of a run in which the drives are told to disable: one natively
     /// (a SETPOINT acts on reception); with synchronous RPDOs (CiA 402, transmission type
     /// 1..=240) the controlword acts at the next SYNC, so one more cycle is needed.

@@ -837,17 +837,21 @@ impl CycleCore {
         }
         out.clear();
         self.link.finish_cycle(t, &self.setpoints[..self.n], out);
+        let settled = matches!(
+            self.sup.state(),
+            SupervisorState::Stopped | SupervisorState::Fault
+        ) && at_rest_now;
+        let idle_stop = self.sup.state() == SupervisorState::Idle && self.stop_requested;
+        // The very last cycle of a finished run, drives disabled: hand the devices back.
+        if (settled || idle_stop) && self.done_cycles + 1 >= self.cfg.linger_cycles {
+            self.link.release(out);
+        }
         let k = out.len();
         for &f in out.as_slice() {
             self.push_tx(t, &f);
         }
         self.last_cmd = cmd;
 
-        let settled = matches!(
-            self.sup.state(),
-            SupervisorState::Stopped | SupervisorState::Fault
-        ) && command_at_rest(&cmd, self.sup.config().rest_speed);
-        let idle_stop = self.sup.state() == SupervisorState::Idle && self.stop_requested;
         if settled || idle_stop {
             self.done_cycles = self.done_cycles.saturating_add(1);
         } else {

@@ -482,6 +482,12 @@ impl Master {
     /// operator re-arms, with the platform at rest. `t` starts the grace period in which a
     /// drive still in fault (its statusword) is not re-latched: the controller is sending it
     /// a fault reset.
+    ///
+    /// Devices that boot again get their grace period from the cycle in which every device
+    /// runs (the controller arms, and starts the fault reset, only then): a drive that
+    /// faulted on its own while no master was there (communication loss after a crash) is
+    /// cleared by the next master instead of failing its arming; one whose fault persists is
+    /// reported when the grace period ends.
     pub fn rearm(&mut self, t: f64) {
         self.failure = None;
         let grace = t + f64::from(self.cfg.enable_timeout_ms) * 1e-3;
@@ -489,10 +495,30 @@ impl Master {
             d.fault = None;
             d.enable_since = None;
             d.hb_lost_reported = false;
-            d.reset_grace_until = grace;
-            if d.boot != BootState::Started {
+            if d.boot == BootState::Started {
+                d.reset_grace_until = grace;
+            } else {
                 d.boot = BootState::NeedsReset;
+                d.reset_grace_until = f64::INFINITY;
             }
+        }
+    }
+
+    /// Hands the devices back at the clean end of a run, after the drives were told to
+    /// disable: NMT reset communication to every device. Their communication objects return
+    /// to the power-on values, so they stop expecting our heartbeat and RPDOs (no
+    /// communication-loss EMCY or reaction once we are gone) and wait, pre-operational and
+    /// disabled, for the next master. A process that dies instead leaves them monitoring:
+    /// that is the fail-safe path. A later [`Master::start_cycle`] boots them again.
+    pub fn release(&mut self, out: &mut FrameBuf) {
+        for i in 0..self.devices.len() {
+            let node = self.devices[i].node;
+            self.push(out, nmt::command(NmtCommand::ResetCommunication, node));
+            let d = &mut self.devices[i];
+            d.boot = BootState::NeedsReset;
+            d.inflight = None;
+            d.nmt = None;
+            d.statusword = None;
         }
     }
 
@@ -588,6 +614,15 @@ impl Master {
                     }
                 }
                 _ => {}
+            }
+        }
+        // Everything runs: the grace periods of a re-arm start now (see `rearm`).
+        if self.ready() {
+            let grace = t + f64::from(self.cfg.enable_timeout_ms) * 1e-3;
+            for d in &mut self.devices {
+                if d.reset_grace_until == f64::INFINITY {
+                    d.reset_grace_until = grace;
+                }
             }
         }
         self.service_sdo(t, out);
