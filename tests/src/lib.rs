@@ -11,7 +11,7 @@ use rollbase_control::runtime::{
     VirtualLockstepBus,
 };
 use rollbase_control::scenario::{self, Scenario};
-use rollbase_control::Platform;
+use rollbase_control::{Platform, Protocol};
 use rollbase_driver::fault::FaultModel;
 use rollbase_vcan_sim::{FaultSchedule, PlantConfig, SimConfig, Simulator};
 
@@ -43,6 +43,11 @@ pub struct RunOptions {
     pub sim_platform: Option<Platform>,
     /// Waypoints of a quintic-spline trajectory used instead of the scenario's.
     pub waypoints: Option<Vec<rollbase_control::trajectory::Waypoint>>,
+    /// Wire profile of the controller and the simulated devices.
+    pub profile: Protocol,
+    /// Serialize the simulator's frames on a bus of this bit rate (`None`: every frame
+    /// arrives at its send time, as the native tests always ran).
+    pub sim_bitrate: Option<u32>,
 }
 
 impl RunOptions {
@@ -60,7 +65,17 @@ impl RunOptions {
             start_at_reference: true,
             sim_platform: None,
             waypoints: None,
+            profile: Protocol::Native,
+            sim_bitrate: None,
         }
+    }
+
+    /// Same, on the CiA 402 profile (CANopen drives and encoders, default `[cia402]`), with
+    /// the simulator's frames serialized on a 1 Mbit/s bus.
+    pub fn cia402(mut self) -> Self {
+        self.profile = Protocol::Cia402;
+        self.sim_bitrate = Some(1_000_000);
+        self
     }
 
     /// Same, with the given controller.
@@ -80,12 +95,22 @@ pub struct RunOutcome {
     pub report: LockstepReport,
     /// The platform.
     pub platform: Platform,
+    /// CiA 402 profile: every simulated drive's node and its state [`AFTER_END`] after the
+    /// controller's last cycle (empty for the native profile).
+    pub final_drive_states: Vec<(u8, rollbase_driver::canopen::ds402::State)>,
+    /// The frames the simulated devices sent in the [`AFTER_END`] after the controller's
+    /// last cycle (nobody listening): what a controller that exits leaves on the bus.
+    pub after_end: Vec<rollbase_driver::frame::CanFrame>,
 }
+
+/// Simulated time the devices run on after the controller's last cycle.
+pub const AFTER_END: std::time::Duration = std::time::Duration::from_millis(500);
 
 /// Builds the controller core, the simulator and the virtual bus for `opts` (the core is not
 /// armed yet); also returns the trajectory's duration (s).
 pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstepBus, f64), String> {
-    let platform = Platform::justin();
+    let mut platform = Platform::justin();
+    platform.protocol = opts.profile;
     let traj: Box<dyn rollbase_control::trajectory::Trajectory> = match &opts.waypoints {
         Some(w) => Box::new(
             rollbase_control::trajectory::QuinticSpline::new(&platform, w)
@@ -97,26 +122,22 @@ pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstep
     let r0 = traj.sample(0.0);
     let core =
         CycleCore::new(platform.clone(), traj, opts.runtime.clone()).map_err(|e| e.to_string())?;
-    let sim_p = opts.sim_platform.clone().unwrap_or(platform);
-    let sim = if opts.start_at_reference {
-        Simulator::new(
-            &sim_p,
-            opts.plant.clone(),
-            opts.faults.clone(),
-            &r0,
-            opts.seed,
-        )
-    } else {
-        Simulator::with_config(
-            &sim_p,
-            SimConfig {
-                plant: opts.plant.clone(),
-                faults: opts.faults.clone(),
-                seed: opts.seed,
-                ..SimConfig::default()
-            },
-        )
-    }
+    let mut sim_p = opts.sim_platform.clone().unwrap_or(platform);
+    sim_p.protocol = opts.profile;
+    let initial = opts
+        .start_at_reference
+        .then(|| rollbase_vcan_sim::InitialState::from_reference(&sim_p, &r0));
+    let sim = Simulator::with_config(
+        &sim_p,
+        SimConfig {
+            plant: opts.plant.clone(),
+            faults: opts.faults.clone(),
+            initial,
+            seed: opts.seed,
+            bitrate: opts.sim_bitrate,
+            ..SimConfig::default()
+        },
+    )
     .map_err(|e| e.to_string())?;
     let bus = VirtualLockstepBus::new(opts.bus_faults, opts.seed ^ 0x5EED);
     Ok((core, sim, bus, duration))
@@ -141,11 +162,27 @@ pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]
             sink(r, w);
         },
     );
+    let end = sim.now();
+    sim.advance_to(end + AFTER_END);
+    let mut after_end = Vec::new();
+    sim.drain_tx(&mut |t, f| {
+        if t > end {
+            after_end.push(f)
+        }
+    });
+    let final_drive_states = sim
+        .devices()
+        .iter()
+        .filter(|d| d.role() != rollbase_driver::canopen::config::Role::Leg)
+        .map(|d| (d.node(), d.state402()))
+        .collect();
     RunOutcome {
         records,
         summary,
         report,
         platform,
+        final_drive_states,
+        after_end,
     }
 }
 
