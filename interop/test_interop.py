@@ -280,9 +280,21 @@ def test_setpoints_from_python_can_are_accepted_by_the_simulator(tmp_path, procs
                     speeds.append(dbc_db.decode_message(0x181, bytes(m.data))["wheel_speed"])
                 elif m.arbitration_id == 0x701:
                     states.append(dbc_db.decode_message(0x701, bytes(m.data), decode_choices=False)["state"])
+        # Flush: the simulator counts a setpoint when the next SYNC closes its cycle, and
+        # closing this socket with replies still unread makes the kernel reset the
+        # connection, which can drop our last frames inside the bridge. So send one more
+        # SYNC and wait for node 1's answer to it (replies come in order) before closing.
+        answered = len(speeds)
+        bus.send(frame(sync_msg, {"cycle": cycles, "counter": cycles % 16}))
+        deadline = time.monotonic() + 2.0
+        while len(speeds) < cycles + 1 and time.monotonic() < deadline:
+            m = bus.recv(timeout=max(0.0, deadline - time.monotonic()))
+            if m is not None and m.arbitration_id == 0x181:
+                speeds.append(dbc_db.decode_message(0x181, bytes(m.data))["wheel_speed"])
     finally:
         bus.shutdown()
     text = sim.stop()
+    assert len(speeds) == cycles + 1, (answered, len(speeds), text)
     node = {int(n): (int(ok), int(crc), int(cnt)) for n, ok, crc, cnt in re.findall(
         r"node (\d): \w+, \d+ SYNCs answered, (\d+) setpoints ok, (\d+) bad CRC, (\d+) bad counter", text)}
     assert node[1] == (sent_ok, 0, 0), text
