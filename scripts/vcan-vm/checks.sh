@@ -7,7 +7,7 @@
 #   ROLLBASE_BIN        directory with rollbase and rollbase-sim
 #   ROLLBASE_TESTS      directory with the driver's SocketCAN test executables
 #   ROLLBASE_WORK       scratch directory (captures, logs)
-#   ROLLBASE_CHECKS     space-separated subset of "0 1 2 3 4 5" (empty: all)
+#   ROLLBASE_CHECKS     space-separated subset of "0 1 2 3 4 5 6 7" (empty: all)
 #   ROLLBASE_CHECKS_AWK the capture decoder (capture.awk)
 #   ROLLBASE_IP         iproute2's ip (default: ip from PATH)
 #   ROLLBASE_DURATION   seconds of the seed-000 run in check 2 (default: the whole scenario)
@@ -27,6 +27,13 @@
 #      counted by the simulator, and the run is not disturbed (check-2 bounds, no module fault)
 #   5  `kill -9` of the controller while the platform moves: every module stops its motors
 #      within 50 ms of the first missing SETPOINT, seen in the capture (STATUS leaves `enabled`)
+#   6  the CiA 402 profile: rollbase-sim --profile cia402 (8 CiA 402 drives, 4 CiA 406 encoders)
+#      + rollbase run --profile cia402 on vcan0 with candump beside them: the run ends in
+#      Stopped within check 2's bounds; in the capture 12 boot-ups, 12 NMT starts, no SDO abort,
+#      no EMCY, and `rollbase monitor --profile cia402` describes every frame
+#   7  the CiA 402 profile, `kill -9` of the controller while the platform moves: every drive
+#      reports the lost master by EMCY (RPDO timeout 0x8250 or heartbeat 0x8130) within 70 ms
+#      of the last RPDO and its statusword shows fault (the 0x6007 reaction)
 BIN="${ROLLBASE_BIN:?set ROLLBASE_BIN}"
 TESTS="${ROLLBASE_TESTS:-}"
 W="${ROLLBASE_WORK:-/tmp/rollbase}"
@@ -412,8 +419,124 @@ check5() {
 }
 
 # ---------------------------------------------------------------------------------------------
+# Per node, the first EMCY for a lost master (0x8250 / 0x8130) after the controller's last
+# RPDO1, and whether a statusword in fault followed; candump -L lines on stdin.
+cia402_kill_stats() {
+    awk '
+        function hv(s,    i, v) { v = 0; s = toupper(s); for (i = 1; i <= length(s); i++) v = v * 16 + index("0123456789ABCDEF", substr(s, i, 1)) - 1; return v }
+        {
+            t = substr($1, 2, length($1) - 2) + 0
+            split($3, a, "#"); id = hv(a[1]); d = a[2]
+            if (id >= 513 && id <= 520) last_rpdo = t
+            if (id >= 129 && id <= 136 && last_rpdo != "") {
+                c = substr(d, 1, 4)
+                if ((c == "5082" || c == "3081") && !((id - 128) in em)) em[id - 128] = t
+            }
+            if (id >= 641 && id <= 648 && length(d) == 4) {
+                sw = hv(substr(d, 3, 2) substr(d, 1, 2))
+                if (sw % 16 == 8 || sw % 16 == 15) flt[id - 640] = 1
+            }
+        }
+        END {
+            worst = 0; n = 0; nf = 0
+            for (k in em) { n++; dt = (em[k] - last_rpdo) * 1000; if (dt > worst) worst = dt }
+            for (k in flt) nf++
+            printf "emcy_nodes=%d\nworst_emcy_ms=%.1f\nfault_nodes=%d\n", n, worst, nf
+        }'
+}
+
+check6() {
+    if ! have rollbase || ! have rollbase-sim; then
+        record 6 "CiA 402 profile on vcan0 (seed000)" 1 "rollbase or rollbase-sim missing"
+        return
+    fi
+    candump -L "$IFACE" >"$W/c6-cap.log" 2>/dev/null &
+    cp=$!
+    rollbase-sim --bus "$IFACE" --profile cia402 --start scenario:seed000 >"$W/c6-sim.out" 2>"$W/c6-sim.err" &
+    sp=$!
+    sleep 1
+    dur=""
+    [ -n "$ROLLBASE_DURATION" ] && dur="--duration $ROLLBASE_DURATION"
+    say "check 6: rollbase run --bus $IFACE --profile cia402 --trajectory scenario:seed000 $dur"
+    # shellcheck disable=SC2086
+    rollbase run --bus "$IFACE" --profile cia402 --trajectory scenario:seed000 $dur --json \
+        >"$W/c6-run.json" 2>"$W/c6-run.err"
+    rc=$?
+    sleep 0.3
+    stop_pid $sp INT
+    stop_pid $cp TERM
+    sed 's/^/    run| /' "$W/c6-run.err" "$W/c6-run.json" | tail -n 12
+    sed 's/^/    sim| /' "$W/c6-sim.out" "$W/c6-sim.err" | tail -n 20
+    j="$W/c6-run.json"
+    fs=$(jstr "$j" supervisor_final_state)
+    pe=$(jnum "$j" max_position_error_m)
+    he=$(jnum "$j" max_heading_error_rad)
+    le_=$(jnum "$j" max_leg_error_m)
+    cy=$(jnum "$j" cycles)
+    st=0
+    d="exit $rc, final $fs, $cy cycles: pos $(ms "$pe") mm, heading $(awk -v h="$he" 'BEGIN { printf "%.3f", h * 57.29577951 }') deg, legs $(ms "$le_") mm;"
+    [ "$rc" = 0 ] && [ "$fs" = stopped ] || st=1
+    le "$pe" 0.005 || st=1
+    le "$he" 0.00872664626 || st=1
+    le "$le_" 0.002 || st=1
+    cap="$W/c6-cap.log"
+    boot=$(grep -E ' 70[1-9A-C]#00$' "$cap" | awk '{ split($3, a, "#"); print a[1] }' | sort -u | grep -c .)
+    starts=$(grep -E ' 000#01(0[1-9A-C])$' "$cap" | sort -u -k3 | grep -c .)
+    aborts=$(grep -cE ' 58[1-9A-C]#80' "$cap")
+    emcy=$(grep -E ' 08[1-9A-C]#' "$cap" | grep -vc '#0000')
+    d="$d capture: $(grep -c . "$cap") frames, boot-ups from $boot nodes, NMT start to $starts nodes, $aborts SDO aborts, $emcy EMCY;"
+    [ "$boot" = 12 ] && [ "$starts" = 12 ] && [ "$aborts" = 0 ] && [ "$emcy" = 0 ] || st=1
+    if rollbase monitor --profile cia402 --candump "$cap" --summary >"$W/c6-mon.txt" 2>"$W/c6-mon.err"; then
+        msum=$(tail -n 1 "$W/c6-mon.txt")
+        grep 'REJECTED' "$W/c6-mon.txt" | head -n 5 | sed 's/^/    monitor| /'
+        rej=$(echo "$msum" | sed -n 's/.*rejected: \([0-9]*\);.*/\1/p')
+        d="$d monitor: $msum"
+        [ "$rej" = 0 ] || st=1
+    else
+        st=1; d="$d monitor failed: $(head -c 200 "$W/c6-mon.err")"
+    fi
+    record 6 "CiA 402 profile on vcan0 (seed000)" $st "$d"
+}
+
+check7() {
+    if ! have rollbase || ! have rollbase-sim; then
+        record 7 "CiA 402: controller killed -> drives fault" 1 "rollbase or rollbase-sim missing"
+        return
+    fi
+    candump -L "$IFACE" >"$W/c7-cap.log" 2>/dev/null &
+    cp=$!
+    rollbase-sim --bus "$IFACE" --profile cia402 --start scenario:seed000 >"$W/c7-sim.out" 2>"$W/c7-sim.err" &
+    sp=$!
+    sleep 1
+    rollbase run --bus "$IFACE" --profile cia402 --trajectory scenario:seed000 --json >"$W/c7-run.json" 2>"$W/c7-run.err" &
+    rp=$!
+    sleep 6
+    alive=0
+    kill -0 $rp 2>/dev/null && alive=1
+    kill -KILL $rp 2>/dev/null
+    wait $rp 2>/dev/null
+    say "check 7: controller (pid $rp) killed with SIGKILL"
+    sleep 1
+    stop_pid $sp INT
+    stop_pid $cp TERM
+    cia402_kill_stats <"$W/c7-cap.log" >"$W/c7-kill.txt"
+    sed 's/^/    kill| /' "$W/c7-kill.txt"
+    sed 's/^/    sim| /' "$W/c7-sim.err" | tail -n 16
+    en=$(kv "$W/c7-kill.txt" emcy_nodes)
+    worst=$(kv "$W/c7-kill.txt" worst_emcy_ms)
+    fn=$(kv "$W/c7-kill.txt" fault_nodes)
+    st=0
+    d=""
+    [ $alive = 1 ] || { st=1; d="$d controller had already exited before the kill;"; }
+    [ "$en" = 8 ] || { st=1; d="$d EMCY for the lost master from $en of 8 drives;"; }
+    le "$worst" 70 || { st=1; d="$d slowest EMCY $worst ms after the last RPDO (> 70 ms);"; }
+    [ "$fn" = 8 ] || { st=1; d="$d statusword in fault from $fn of 8 drives;"; }
+    record 7 "CiA 402: controller killed -> drives fault" $st "$d EMCY from $en drives, slowest $worst ms after the last RPDO (RPDO deadline 50 ms, heartbeat 60 ms); $fn drives in fault"
+}
+
+# ---------------------------------------------------------------------------------------------
 say "rollbase vcan checks on $IFACE (work dir $W)"
-for n in 0 1 2 3 4 5; do
+for n in 0 1 2 3 4 5 6 7; do
     if want $n; then
         say "check $n ..."
         "check$n"
