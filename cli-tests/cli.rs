@@ -135,3 +135,120 @@ fn lockstep_demo_json_has_the_documented_fields() {
     assert_eq!(v["supervisor_final_state"], "stopped");
     assert!(v["max_position_error_m"].as_f64().unwrap() < 0.005);
 }
+
+/// Parses `| label | … | load % |` rows of the bus-load table into (label, frames/cycle, load %).
+fn bus_load_rows(text: &str) -> Vec<(String, f64, f64)> {
+    text.lines()
+        .filter(|l| l.starts_with('|') && l.trim_end().ends_with("% |"))
+        .map(|l| {
+            let cells: Vec<&str> = l.split('|').map(str::trim).collect();
+            let frames: f64 = cells[4].parse().expect("frames/cycle");
+            let load: f64 = cells[7].trim_end_matches('%').parse().expect("load %");
+            (cells[1].to_string(), frames, load)
+        })
+        .collect()
+}
+
+#[test]
+fn cia402_bus_load_counts_8_drives_and_4_encoders_and_states_the_headroom() {
+    let _serial = serial();
+    let out = rollbase()
+        .args(["bus-load", "--profile", "cia402"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(text.contains("8 drives + 4 encoders"), "{text}");
+    let rows = bus_load_rows(&text);
+    let row = |name: &str| {
+        rows.iter()
+            .find(|r| r.0 == name)
+            .unwrap_or_else(|| panic!("no `{name}` row in\n{text}"))
+            .clone()
+    };
+    assert_eq!(row("SYNC").1, 1.0);
+    assert_eq!(row("RPDO1 drive").1, 8.0);
+    assert_eq!(row("TPDO1 drive").1, 8.0);
+    assert_eq!(row("TPDO1 enc").1, 4.0);
+    let total = row("total").2;
+    let sum: f64 = rows.iter().filter(|r| r.0 != "total").map(|r| r.2).sum();
+    assert!(
+        (sum - total).abs() < 0.05,
+        "rows sum to {sum}, total {total}"
+    );
+    assert!(total < 100.0, "{text}");
+    let headroom = format!("headroom {:.2}%", 100.0 - total);
+    assert!(text.contains(&headroom), "expected `{headroom}` in\n{text}");
+    assert!(text.contains("verdict: fits"), "{text}");
+    // At half the bit rate the same traffic does not fit: the command must say so, not print
+    // a plausible table.
+    let out = rollbase()
+        .args(["bus-load", "--profile", "cia402", "--bitrate", "500000"])
+        .output()
+        .unwrap();
+    let text = String::from_utf8(out.stdout).unwrap();
+    let total_500k = bus_load_rows(&text)
+        .into_iter()
+        .find(|r| r.0 == "total")
+        .map(|r| r.2)
+        .unwrap_or(f64::NAN);
+    assert!((total_500k - 2.0 * total).abs() < 0.05, "{text}");
+    assert!(text.contains("verdict: DOES NOT FIT"), "{text}");
+}
+
+#[test]
+fn cia402_platform_file_round_trips_and_bad_fields_are_named() {
+    let _serial = serial();
+    let dir = std::env::temp_dir().join(format!("rollbase-cli-cia-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = rollbase()
+        .args(["config", "default", "--profile", "cia402"])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(text.contains("protocol = \"cia402\""), "{text}");
+    let good = dir.join("cia.toml");
+    std::fs::write(&good, &text).unwrap();
+    let out = rollbase()
+        .args(["config", "check"])
+        .arg(&good)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for (from, to, field) in [
+        (
+            "rpdo_timeout_ms = 50",
+            "rpdo_timeout_ms = 2",
+            "cia402.rpdo_timeout_ms",
+        ),
+        ("leg_node = 12", "leg_node = 1", "cia402.wheels[3].leg_node"),
+    ] {
+        assert!(text.contains(from), "default file lacks `{from}`");
+        let bad = dir.join("bad.toml");
+        std::fs::write(&bad, text.replacen(from, to, 1)).unwrap();
+        let out = rollbase()
+            .args(["config", "check"])
+            .arg(&bad)
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "`{to}` accepted");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(field), "`{to}`: {err}");
+    }
+    let out = rollbase()
+        .args(["bus-load", "--profile", "cia403"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("cia403"));
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -41,10 +41,34 @@ pub struct Cia402Load {
     pub feedback_burst_s: f64,
 }
 
+/// The controller's default feedback window after SYNC (s); `control`'s runtime owns the
+/// setting, the report only compares against its default.
+pub const DEFAULT_FEEDBACK_WINDOW_S: f64 = 0.002;
+
 impl Cia402Load {
     /// Unused capacity, % of the bit rate.
     pub fn headroom_percent(&self) -> f64 {
         100.0 - self.total_percent
+    }
+
+    /// Why this configuration cannot run as configured (empty when it fits): the traffic
+    /// exceeds the bus, or the feedback burst does not end inside the default feedback window.
+    pub fn problems(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        if self.total_percent >= 100.0 {
+            out.push(format!(
+                "the traffic needs {:.2}% of the bus: raise the bit rate, lower `cycle_hz` or split the wheels over two buses",
+                self.total_percent
+            ));
+        }
+        if self.feedback_burst_s > DEFAULT_FEEDBACK_WINDOW_S {
+            out.push(format!(
+                "the feedback burst ({:.3} ms) outlasts the {:.1} ms feedback window: the last TPDO1s of every cycle would arrive too late",
+                self.feedback_burst_s * 1e3,
+                DEFAULT_FEEDBACK_WINDOW_S * 1e3
+            ));
+        }
+        out
     }
 }
 
@@ -173,11 +197,18 @@ impl fmt::Display for Cia402Load {
             self.total_percent,
             self.headroom_percent()
         )?;
-        write!(
+        writeln!(
             f,
-            "feedback burst after each SYNC (SYNC + every TPDO1): {:.3} ms worst case; it must end inside the controller's feedback window (default 2 ms)",
-            self.feedback_burst_s * 1e3
-        )
+            "feedback burst after each SYNC (SYNC + every TPDO1): {:.3} ms worst case; it must end inside the controller's feedback window (default {:.0} ms)",
+            self.feedback_burst_s * 1e3,
+            DEFAULT_FEEDBACK_WINDOW_S * 1e3
+        )?;
+        let problems = self.problems();
+        if problems.is_empty() {
+            write!(f, "verdict: fits")
+        } else {
+            write!(f, "verdict: DOES NOT FIT: {}", problems.join("; "))
+        }
     }
 }
 
@@ -211,5 +242,37 @@ mod tests {
         let text = l.to_string();
         assert!(text.contains("62.88%"), "{text}");
         assert!(text.contains("headroom 35.42%"), "{text}");
+        assert!(l.problems().is_empty(), "{:?}", l.problems());
+        assert!(text.ends_with("verdict: fits"), "{text}");
+    }
+
+    #[test]
+    fn at_500_kbit_the_same_platform_does_not_fit_and_the_report_says_why() {
+        let cfg = Cia402Config::for_wheels(4);
+        let l = load(&cfg, 4, 250.0, 500_000);
+        assert!(
+            (l.total_percent - 129.16).abs() < 1e-9,
+            "{}",
+            l.total_percent
+        );
+        // 1595 bits at 500 kbit/s = 3.19 ms > 2 ms.
+        assert!((l.feedback_burst_s - 3.19e-3).abs() < 1e-12);
+        let p = l.problems();
+        assert_eq!(p.len(), 2, "{p:?}");
+        assert!(p[0].contains("129.16% of the bus"), "{}", p[0]);
+        assert!(p[1].contains("3.190 ms"), "{}", p[1]);
+        assert!(l.to_string().contains("verdict: DOES NOT FIT"));
+        // Three wheels at 500 kbit/s: 1900 cyclic bits per cycle = 95 % plus 2.72 % of
+        // heartbeats and statuswords fits the bus, but SYNC + 6 × 135 + 3 × 115 = 1210 bits
+        // = 2.42 ms of burst does not fit the window: only that is reported.
+        let l3 = load(&Cia402Config::for_wheels(3), 3, 250.0, 500_000);
+        assert!(
+            (l3.total_percent - 97.72).abs() < 1e-9,
+            "{}",
+            l3.total_percent
+        );
+        let p3 = l3.problems();
+        assert_eq!(p3.len(), 1, "{p3:?}");
+        assert!(p3[0].contains("2.420 ms"), "{}", p3[0]);
     }
 }
