@@ -268,7 +268,10 @@ pub fn markdown() -> String {
          the velocity object cannot carry is sent as zero with halt, and the supervisor's \
          limit check stops the platform. At the end of a run the drives are told to shut down \
          for the last two cycles (a synchronous RPDO acts at the next SYNC), so they end in \
-         ready to switch on, not in a communication-loss fault.\n\n",
+         ready to switch on; the very last cycle then sends NMT reset communication to every \
+         device, which returns their heartbeat consumer and RPDO deadline to off: a controller \
+         that exits cleanly leaves no communication-loss fault behind. One that dies leaves \
+         them monitoring, and they fault within the timeouts below (the fail-safe path).\n\n",
     );
 
     s.push_str("## Supervision\n\n");
@@ -294,7 +297,9 @@ pub fn markdown() -> String {
     s.push_str(
         "\nDevice faults are latched until the operator re-arms; re-arming clears them, sends \
          the fault-reset edge to drives in fault and boots again every device that is not \
-         running.\n\n",
+         running. A drive found in fault when its master boots (the previous controller \
+         died and the drive reacted to the loss) is sent the fault reset once every device \
+         runs; only a fault still shown `enable_timeout_ms` later is reported.\n\n",
     );
 
     s.push_str("## Units (defaults)\n\n");
