@@ -182,40 +182,13 @@ impl fmt::Display for BusLoadReport {
             c.bitrate,
             c.status_hz
         )?;
-        writeln!(
+        write_table(
             f,
-            "worst-case frame bits = 8n + 47 + floor((33 + 8n)/4) (classic 11-bit id, full bit stuffing)"
-        )?;
-        writeln!(f)?;
-        writeln!(
-            f,
-            "| message    | DLC | bits/frame | frames/cycle | frames/s | bit/s    | load %  |"
-        )?;
-        writeln!(
-            f,
-            "|------------|-----|------------|--------------|----------|----------|---------|"
-        )?;
-        for r in &self.rows {
-            writeln!(
-                f,
-                "| {:<10} | {:>3} | {:>10} | {:>12.3} | {:>8.1} | {:>8.0} | {:>6.2}% |",
-                r.name,
-                r.dlc,
-                r.bits_per_frame,
-                r.frames_per_cycle,
-                r.frames_per_s,
-                r.bits_per_s,
-                r.load_percent
-            )?;
-        }
-        writeln!(
-            f,
-            "| {:<10} |     |            | {:>12.3} | {:>8.1} | {:>8.0} | {:>6.2}% |",
-            "total",
-            self.rows.iter().map(|r| r.frames_per_cycle).sum::<f64>(),
-            self.rows.iter().map(|r| r.frames_per_s).sum::<f64>(),
+            "message",
+            10,
+            &self.rows,
             self.total_bits_per_s,
-            self.total_percent
+            self.total_percent,
         )?;
         writeln!(f)?;
         writeln!(
@@ -225,6 +198,55 @@ impl fmt::Display for BusLoadReport {
         )?;
         write!(f, "total with STATUS: {:.2}%", self.total_percent)
     }
+}
+
+/// Writes the frame-length formula and the per-frame load table (one row per frame kind and
+/// a total row) shared by every profile's report; `label` heads the first column, `width`
+/// is its width.
+pub(crate) fn write_table(
+    f: &mut fmt::Formatter<'_>,
+    label: &str,
+    width: usize,
+    rows: &[BusLoadRow],
+    total_bits_per_s: f64,
+    total_percent: f64,
+) -> fmt::Result {
+    writeln!(
+        f,
+        "worst-case frame bits = 8n + 47 + floor((33 + 8n)/4) (classic 11-bit id, full bit stuffing)"
+    )?;
+    writeln!(f)?;
+    writeln!(
+        f,
+        "| {label:<width$} | DLC | bits/frame | frames/cycle | frames/s | bit/s    | load %  |"
+    )?;
+    writeln!(
+        f,
+        "|-{}-|-----|------------|--------------|----------|----------|---------|",
+        "-".repeat(width)
+    )?;
+    for r in rows {
+        writeln!(
+            f,
+            "| {:<width$} | {:>3} | {:>10} | {:>12.3} | {:>8.1} | {:>8.0} | {:>6.2}% |",
+            r.name,
+            r.dlc,
+            r.bits_per_frame,
+            r.frames_per_cycle,
+            r.frames_per_s,
+            r.bits_per_s,
+            r.load_percent
+        )?;
+    }
+    writeln!(
+        f,
+        "| {:<width$} |     |            | {:>12.3} | {:>8.1} | {:>8.0} | {:>6.2}% |",
+        "total",
+        rows.iter().map(|r| r.frames_per_cycle).sum::<f64>(),
+        rows.iter().map(|r| r.frames_per_s).sum::<f64>(),
+        total_bits_per_s,
+        total_percent
+    )
 }
 
 #[cfg(test)]

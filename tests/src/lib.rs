@@ -190,3 +190,77 @@ pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]
 pub fn run(opts: &RunOptions) -> RunOutcome {
     run_with(opts, &mut |_, _| {})
 }
+
+/// The seed-000 acceptance bounds, one definition for every wire profile: the run ends in
+/// Stopped, errors against the simulator's ground truth stay below 5 mm (position), 0.5°
+/// (heading) and 2 mm (legs), no frame is rejected on a clean bus, the measured wheel speeds
+/// and steering rates stay within the platform's limits, and the true final pose is within
+/// 5 mm and 0.5° of the goal (4.5 m, 4.5 m, 2π).
+pub fn assert_seed000_bounds(out: &RunOutcome) {
+    let s = &out.summary;
+    assert_eq!(
+        s.final_state, "stopped",
+        "run must end in Stopped: {:?}",
+        s.fault_reason
+    );
+    assert!(
+        s.against_truth,
+        "errors are measured against the simulator's ground truth"
+    );
+    assert!(
+        s.max_position_error_m < 0.005,
+        "max position error {} m",
+        s.max_position_error_m
+    );
+    assert!(
+        s.max_heading_error_rad < 0.5f64.to_radians(),
+        "max heading error {}°",
+        s.max_heading_error_rad.to_degrees()
+    );
+    assert!(
+        s.max_leg_error_m < 0.002,
+        "max leg error {} m",
+        s.max_leg_error_m
+    );
+    assert_eq!(s.rejected_frames, 0, "a clean bus rejects nothing");
+    let p = &out.platform;
+    assert!(s.max_wheel_speed_rad_s <= p.limits.wheel_speed + 1e-9);
+    assert!(s.max_steer_rate_rad_s <= p.limits.steer_rate + 1e-9);
+    let last = out.records.last().expect("records");
+    let (pose, _) = last.truth.expect("simulated truth");
+    let to_goal = (pose.x - 4.5).hypot(pose.y - 4.5);
+    assert!(to_goal < 0.005, "final distance to the goal {to_goal} m");
+    assert!((pose.theta - std::f64::consts::TAU).abs() < 0.5f64.to_radians());
+}
+
+/// Asserts the supervisor's controlled stop from the record of cycle `from` on: every
+/// commanded wheel speed changes by at most the wheel acceleration limit per cycle, steering
+/// is held (zero rate), and the state stays Fault (latched).
+pub fn assert_controlled_stop_from(out: &RunOutcome, from: u64) {
+    let p = &out.platform;
+    let after: Vec<_> = out.records.iter().filter(|r| r.cycle >= from).collect();
+    assert!(after.len() > 1, "no records after cycle {from}");
+    for pair in after.windows(2) {
+        for i in 0..pair[1].n {
+            let dv = (pair[1].command.wheels[i].wheel_speed
+                - pair[0].command.wheels[i].wheel_speed)
+                .abs();
+            assert!(
+                dv <= p.limits.wheel_accel * p.dt() + 1e-9,
+                "cycle {}: wheel {i} speed step {dv} rad/s",
+                pair[1].cycle
+            );
+            assert_eq!(
+                pair[1].command.wheels[i].steer_rate, 0.0,
+                "cycle {}: steering not held",
+                pair[1].cycle
+            );
+        }
+        assert_eq!(
+            pair[1].state,
+            rollbase_control::supervisor::SupervisorState::Fault,
+            "cycle {}: fault not latched",
+            pair[1].cycle
+        );
+    }
+}

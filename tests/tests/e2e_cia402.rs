@@ -13,7 +13,10 @@ use rollbase_driver::canopen::config::Role;
 use rollbase_driver::canopen::master::{BootError, DeviceFault};
 use rollbase_driver::canopen::{ds402, pdo};
 use rollbase_driver::frame::CanFrame;
-use rollbase_tests::{build, run, RunOptions, RunOutcome, AFTER_END};
+use rollbase_tests::{
+    assert_controlled_stop_from, assert_seed000_bounds, build, run, RunOptions, RunOutcome,
+    AFTER_END,
+};
 use rollbase_vcan_sim::faults::{MotorFault, Silent};
 
 fn first_fault(out: &RunOutcome) -> &CycleRecord {
@@ -27,42 +30,11 @@ fn frame(f: &rollbase_control::record::FrameRecord) -> CanFrame {
     CanFrame::new(f.id, &f.data[..usize::from(f.len)]).expect("recorded frames are valid")
 }
 
-/// The tracking bounds of the native profile's end-to-end test (e2e_lockstep.rs).
-fn assert_within_native_bounds(out: &RunOutcome) {
-    let s = &out.summary;
-    assert_eq!(s.final_state, "stopped", "{:?}", s.fault_reason);
-    assert!(s.against_truth);
-    assert!(
-        s.max_position_error_m < 0.005,
-        "max position error {} m",
-        s.max_position_error_m
-    );
-    assert!(
-        s.max_heading_error_rad < 0.5f64.to_radians(),
-        "max heading error {}°",
-        s.max_heading_error_rad.to_degrees()
-    );
-    assert!(
-        s.max_leg_error_m < 0.002,
-        "max leg error {} m",
-        s.max_leg_error_m
-    );
-    assert_eq!(s.rejected_frames, 0, "a clean bus rejects nothing");
-    let p = &out.platform;
-    assert!(s.max_wheel_speed_rad_s <= p.limits.wheel_speed + 1e-9);
-    assert!(s.max_steer_rate_rad_s <= p.limits.steer_rate + 1e-9);
-    let last = out.records.last().expect("records");
-    let (pose, _) = last.truth.expect("simulated truth");
-    let to_goal = (pose.x - 4.5).hypot(pose.y - 4.5);
-    assert!(to_goal < 0.005, "final distance to the goal {to_goal} m");
-    assert!((pose.theta - std::f64::consts::TAU).abs() < 0.5f64.to_radians());
-}
-
 #[test]
 fn seed000_dfl_tracks_through_the_cia402_profile_within_the_native_bounds() {
     let out = run(&RunOptions::new(Scenario::Seed000).cia402());
     println!("cia402 dfl: {}", out.summary.to_json());
-    assert_within_native_bounds(&out);
+    assert_seed000_bounds(&out);
 
     // Boot: every device reset, configured and started by the cycle the supervisor armed in
     // (the last NMT start goes out at that cycle's start).
@@ -184,7 +156,7 @@ fn seed000_kinematic_tracks_through_the_cia402_profile() {
         .cia402();
     let out = run(&opts);
     println!("cia402 kinematic: {}", out.summary.to_json());
-    assert_within_native_bounds(&out);
+    assert_seed000_bounds(&out);
 }
 
 #[test]
@@ -213,22 +185,8 @@ fn a_drive_fault_is_reported_by_emcy_naming_the_device_and_stops_the_platform() 
     let text = fault.reason.unwrap().to_string();
     assert!(text.contains("wheel 2 steering drive (node 4)"), "{text}");
     assert!(text.contains("0x2310"), "{text}");
-    // Controlled stop within the wheel acceleration limit, then latched at rest.
-    let p = &out.platform;
-    let after: Vec<_> = out
-        .records
-        .iter()
-        .filter(|r| r.cycle >= fault.cycle)
-        .collect();
-    for pair in after.windows(2) {
-        for i in 0..pair[1].n {
-            let dv = (pair[1].command.wheels[i].wheel_speed
-                - pair[0].command.wheels[i].wheel_speed)
-                .abs();
-            assert!(dv <= p.limits.wheel_accel * p.dt() + 1e-9);
-        }
-        assert_eq!(pair[1].state, SupervisorState::Fault);
-    }
+    // Controlled stop within the wheel acceleration limit, steering held, latched.
+    assert_controlled_stop_from(&out, fault.cycle);
     assert_eq!(out.summary.final_state, "fault");
 }
 

@@ -15,7 +15,7 @@
 
 use super::config::Cia402Config;
 use super::pdo;
-use crate::busload::{frame_bits, BusLoadRow};
+use crate::busload::{frame_bits, write_table, BusLoadRow};
 use std::fmt;
 
 /// The steady-state load of the profile on a bus.
@@ -150,40 +150,13 @@ impl fmt::Display for Cia402Load {
             1000.0 / self.cycle_hz,
             self.bitrate
         )?;
-        writeln!(
+        write_table(
             f,
-            "worst-case frame bits = 8n + 47 + floor((33 + 8n)/4) (classic 11-bit id, full bit stuffing)"
-        )?;
-        writeln!(f)?;
-        writeln!(
-            f,
-            "| frame       | DLC | bits/frame | frames/cycle | frames/s | bit/s    | load %  |"
-        )?;
-        writeln!(
-            f,
-            "|-------------|-----|------------|--------------|----------|----------|---------|"
-        )?;
-        for r in &self.rows {
-            writeln!(
-                f,
-                "| {:<11} | {:>3} | {:>10} | {:>12.3} | {:>8.1} | {:>8.0} | {:>6.2}% |",
-                r.name,
-                r.dlc,
-                r.bits_per_frame,
-                r.frames_per_cycle,
-                r.frames_per_s,
-                r.bits_per_s,
-                r.load_percent
-            )?;
-        }
-        writeln!(
-            f,
-            "| {:<11} |     |            | {:>12.3} | {:>8.1} | {:>8.0} | {:>6.2}% |",
-            "total",
-            self.rows.iter().map(|r| r.frames_per_cycle).sum::<f64>(),
-            self.rows.iter().map(|r| r.frames_per_s).sum::<f64>(),
+            "frame",
+            11,
+            &self.rows,
             self.total_bits_per_s,
-            self.total_percent
+            self.total_percent,
         )?;
         writeln!(f)?;
         writeln!(
