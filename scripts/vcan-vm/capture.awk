@@ -9,8 +9,11 @@
 # - frames, per-kind counts, rolling-counter errors (4-bit counter +1 mod 16 per id);
 # - the SYNC period: mean, std, min, max (ms);
 # - SYNC answers: a module answers every SYNC with one FEEDBACK_A and one FEEDBACK_B. The n-th
-#   answer of a node belongs to the n-th SYNC since the node's first answer (modules do not answer
-#   in Boot). `missing_*` counts SYNCs never answered, `extra_*` answers without a SYNC,
+#   answer of a node belongs to the n-th SYNC of the capture: the checks start the simulator
+#   (boot time 0) and the capture before the controller, so no SYNC finds a module in Boot. (Not
+#   the n-th SYNC since the node's first answer: under emulation the first answers can come
+#   several SYNCs late, and that alignment then counted them as answers without a SYNC.)
+#   `missing_*` counts SYNCs never answered, `extra_*` answers without a SYNC,
 #   `late_*` answers that came after the next SYNC, `answer_max_ms` the longest SYNC->answer time;
 # - SETPOINTs: exactly one per node between one SYNC and the next (`setpoint_bad_cycles` counts
 #   the cycles where that does not hold; the cycle cut short by the end of the capture is not
@@ -50,7 +53,7 @@ function root(x,    r, i) {
 function new_node(n) {
     if (n in NODES) return
     NODES[n] = 1
-    PA[n] = 1; PB[n] = 1   # the node's first answer answers the current SYNC
+    PA[n] = nsync; PB[n] = nsync   # every SYNC so far is owed an answer (see the header)
 }
 function answer(n, which,    pend, lat) {
     pend = (which == "A") ? PA[n] : PB[n]

@@ -521,6 +521,7 @@ check7() {
     stop_pid $cp TERM
     cia402_kill_stats <"$W/c7-cap.log" >"$W/c7-kill.txt"
     sed 's/^/    kill| /' "$W/c7-kill.txt"
+    sed 's/^/    run| /' "$W/c7-run.err" "$W/c7-run.json" | tail -n 12
     sed 's/^/    sim| /' "$W/c7-sim.err" | tail -n 16
     en=$(kv "$W/c7-kill.txt" emcy_nodes)
     worst=$(kv "$W/c7-kill.txt" worst_emcy_ms)
