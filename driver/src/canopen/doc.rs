@@ -285,7 +285,7 @@ pub fn markdown() -> String {
          | statusword shows fault | master | device fault, controlled stop |\n\
          | boot-up or heartbeat state other than operational while running | master | device fault (rebooted / left operational), controlled stop |\n\
          | drive not in operation enabled `enable_timeout_ms` ({} ms) after being asked | master | device fault, controlled stop |\n\
-         | no TPDO1 from a device for more than 8 cycles (any device of a wheel) | supervisor | stale feedback naming the node |",
+         | no TPDO1 from a device for more than the supervisor's `stale_cycles` (3 cycles, as for the native modules; any device of a wheel) | supervisor | stale feedback naming the node |",
         cfg.device_heartbeat_timeout_ms,
         emcy::codes::HEARTBEAT,
         cfg.comm_loss_reaction,
