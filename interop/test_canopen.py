@@ -69,7 +69,7 @@ def network(procs, bridge, tmp_path):
     )
     sim.wait_for(r"Ctrl-C to stop")
     net = canopen.Network()
-    net.connect(interface="socketcand", host=host, port=port, channel="vcan0")
+    net.connect(interface="socketcand", host=host, port=port, channel="vcan0", tcp_tune=True)
     nodes = {}
     for n in DRIVES + ENCODERS:
         node = canopen.RemoteNode(n, canopen.ObjectDictionary())

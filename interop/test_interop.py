@@ -174,7 +174,9 @@ def test_mcap_reader_opens_demo_recordings_and_counts_match(tmp_path, scenario):
 
 
 def connect(host: str, port: int) -> can.BusABC:
-    return can.Bus(interface="socketcand", host=host, port=port, channel="vcan0")
+    # tcp_tune: TCP_NODELAY + TCP_QUICKACK. Without it Nagle and delayed ACKs hold small
+    # writes back for ~40 ms, longer than a cycle and close to the modules' 50 ms watchdog.
+    return can.Bus(interface="socketcand", host=host, port=port, channel="vcan0", tcp_tune=True)
 
 
 def test_python_can_socketcand_client_sees_a_realtime_run(tmp_path, procs, bridge, dbc_db):
@@ -240,69 +242,108 @@ def test_python_can_socketcand_client_sees_a_realtime_run(tmp_path, procs, bridg
     assert re.search(r"node 1: \w+, \d+ SYNCs answered, \d+ setpoints ok, 0 bad CRC, 0 bad counter", sim_text), sim_text
 
 
-def test_setpoints_from_python_can_are_accepted_by_the_simulator(tmp_path, procs, bridge, dbc_db):
-    host, port, _ = bridge
+# The modules' setpoint watchdog (50 ms) trips when this test's own 250 Hz loop stalls (a
+# loaded 2-core CI host starves python or the bridge): that is the simulator doing its job,
+# not a failed acceptance. An attempt whose send loop or reply stream had a gap longer than
+# STALL_S is discarded and the experiment repeated; the assertions hold for the first clean one.
+STALL_S = 0.040
+ATTEMPTS = 3
+
+
+def _setpoint_experiment(tmp_path, procs, host, port, dbc_db, attempt):
     url = f"socketcand://{host}:{port}/vcan0"
-    sim = procs([binary("rollbase-sim"), "--bus", url], tmp_path / "sim.log")
+    sim = procs([binary("rollbase-sim"), "--bus", url], tmp_path / f"sim{attempt}.log")
     sim.wait_for("waiting for SYNC")
     bus = connect(host, port)
     sync_msg = dbc_db.get_message_by_name("SYNC")
     sp1 = dbc_db.get_message_by_name("SETPOINT_1")
     sp2 = dbc_db.get_message_by_name("SETPOINT_2")
-    target = 2.0  # rad/s
-    cycles, bad_every = 150, 10
-    sent_ok = sent_bad = 0
-    speeds, states = [], []
+    r = {"target": 2.0, "cycles": 150, "sent_ok": 0, "sent_bad": 0, "speeds": [], "states": [],
+         "send_gap": 0.0, "rx_gap": 0.0}
+    bad_every = 10
+    speeds, states = r["speeds"], r["states"]
+    last_send = last_rx = None
 
     def frame(msg, values):
         raw = msg.encode({**values, "crc": 0})
         return can.Message(arbitration_id=msg.frame_id, data=with_crc(msg.frame_id, raw), is_extended_id=False)
 
+    def got(m):
+        nonlocal last_rx
+        if m.arbitration_id == 0x181:
+            now = time.monotonic()
+            if last_rx is not None and now - last_rx > r["rx_gap"]:
+                r["rx_gap"] = now - last_rx
+                r["rx_gap_at"] = len(speeds)
+            last_rx = now
+            speeds.append(dbc_db.decode_message(0x181, bytes(m.data))["wheel_speed"])
+        elif m.arbitration_id == 0x701:
+            states.append(dbc_db.decode_message(0x701, bytes(m.data), decode_choices=False)["state"])
+
     try:
         t_next = time.monotonic()
-        for k in range(cycles):
+        for k in range(r["cycles"]):
+            now = time.monotonic()
+            if last_send is not None:
+                r["send_gap"] = max(r["send_gap"], now - last_send)
+            last_send = now
             bus.send(frame(sync_msg, {"cycle": k, "counter": k % 16}))
-            bus.send(frame(sp1, {"wheel_speed": target, "steer_rate": 0.0, "enable": 1, "brake": 0,
+            bus.send(frame(sp1, {"wheel_speed": r["target"], "steer_rate": 0.0, "enable": 1, "brake": 0,
                                  "fault_reset": 0, "counter": k % 16}))
             if k % bad_every == 0:
                 bad = frame(sp2, {"wheel_speed": 1.0, "steer_rate": 0.0, "enable": 1, "brake": 0,
                                   "fault_reset": 0, "counter": (k // bad_every) % 16})
                 bad.data[-1] ^= 0x5A  # wrong CRC: must be refused
                 bus.send(bad)
-                sent_bad += 1
-            sent_ok += 1
+                r["sent_bad"] += 1
+            r["sent_ok"] += 1
             t_next += 0.004
             while True:
                 m = bus.recv(timeout=max(0.0, t_next - time.monotonic()))
                 if m is None:
                     break
-                if m.arbitration_id == 0x181:
-                    speeds.append(dbc_db.decode_message(0x181, bytes(m.data))["wheel_speed"])
-                elif m.arbitration_id == 0x701:
-                    states.append(dbc_db.decode_message(0x701, bytes(m.data), decode_choices=False)["state"])
+                got(m)
         # Flush: the simulator counts a setpoint when the next SYNC closes its cycle, and
         # closing this socket with replies still unread makes the kernel reset the
         # connection, which can drop our last frames inside the bridge. So send one more
         # SYNC and wait for node 1's answer to it (replies come in order) before closing.
-        answered = len(speeds)
-        bus.send(frame(sync_msg, {"cycle": cycles, "counter": cycles % 16}))
+        bus.send(frame(sync_msg, {"cycle": r["cycles"], "counter": r["cycles"] % 16}))
         deadline = time.monotonic() + 2.0
-        while len(speeds) < cycles + 1 and time.monotonic() < deadline:
+        while len(speeds) < r["cycles"] + 1 and time.monotonic() < deadline:
             m = bus.recv(timeout=max(0.0, deadline - time.monotonic()))
-            if m is not None and m.arbitration_id == 0x181:
-                speeds.append(dbc_db.decode_message(0x181, bytes(m.data))["wheel_speed"])
+            if m is not None:
+                got(m)
     finally:
         bus.shutdown()
-    text = sim.stop()
-    assert len(speeds) == cycles + 1, (answered, len(speeds), text)
+    r["text"] = sim.stop()
+    return r
+
+
+def test_setpoints_from_python_can_are_accepted_by_the_simulator(tmp_path, procs, bridge, dbc_db):
+    host, port, _ = bridge
+    stalled = []
+    for attempt in range(ATTEMPTS):
+        r = _setpoint_experiment(tmp_path, procs, host, port, dbc_db, attempt)
+        print(f"attempt {attempt}: send gap {r['send_gap'] * 1e3:.1f} ms, reply gap {r['rx_gap'] * 1e3:.1f} ms")
+        if max(r["send_gap"], r["rx_gap"]) <= STALL_S:
+            break
+        stalled.append(f"attempt {attempt}: send gap {r['send_gap'] * 1e3:.1f} ms, "
+                       f"reply gap {r['rx_gap'] * 1e3:.1f} ms at reply {r.get('rx_gap_at')}")
+    else:
+        pytest.fail(f"every attempt's 250 Hz loop stalled longer than {STALL_S * 1e3:.0f} ms "
+                    f"(host too loaded for this timing test): {stalled}")
+    if stalled:
+        print("discarded (test loop stalled):", stalled)
+    text, speeds, states, cycles = r["text"], r["speeds"], r["states"], r["cycles"]
+    assert len(speeds) == cycles + 1, (len(speeds), text)
     node = {int(n): (int(ok), int(crc), int(cnt)) for n, ok, crc, cnt in re.findall(
         r"node (\d): \w+, \d+ SYNCs answered, (\d+) setpoints ok, (\d+) bad CRC, (\d+) bad counter", text)}
-    assert node[1] == (sent_ok, 0, 0), text
-    assert node[2] == (0, sent_bad, 0), text
+    assert node[1] == (r["sent_ok"], 0, 0), text
+    assert node[2] == (0, r["sent_bad"], 0), text
+    assert re.search(r"node 1: Enabled, .* 0 watchdog trips", text), text
     # Behaviour: module 1 enabled (STATUS state 2) and its wheel reached the commanded speed.
     assert 2 in states, states
-    assert len(speeds) >= 0.9 * cycles, len(speeds)
-    assert abs(speeds[-1] - target) < 0.05, speeds[-10:]
+    assert abs(speeds[-1] - r["target"]) < 0.05, f"{speeds[-10:]} {states[-5:]}\n{text}"
 
 
 def test_tshark_reads_our_candump_log_if_installed(tmp_path):
