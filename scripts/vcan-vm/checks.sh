@@ -445,16 +445,22 @@ cia402_kill_stats() {
         }'
 }
 
+# Starts `candump -L` into $W/PREFIX-cap.log and the simulated CiA 402/406 devices (output in
+# $W/PREFIX-sim.*) at the seed-000 start; sets cp and sp to their pids; gives them 1 s.
+start_cia402_sim() {
+    candump -L "$IFACE" >"$W/$1-cap.log" 2>/dev/null &
+    cp=$!
+    rollbase-sim --bus "$IFACE" --profile cia402 --start scenario:seed000 >"$W/$1-sim.out" 2>"$W/$1-sim.err" &
+    sp=$!
+    sleep 1
+}
+
 check6() {
     if ! have rollbase || ! have rollbase-sim; then
         record 6 "CiA 402 profile on vcan0 (seed000)" 1 "rollbase or rollbase-sim missing"
         return
     fi
-    candump -L "$IFACE" >"$W/c6-cap.log" 2>/dev/null &
-    cp=$!
-    rollbase-sim --bus "$IFACE" --profile cia402 --start scenario:seed000 >"$W/c6-sim.out" 2>"$W/c6-sim.err" &
-    sp=$!
-    sleep 1
+    start_cia402_sim c6
     dur=""
     [ -n "$ROLLBASE_DURATION" ] && dur="--duration $ROLLBASE_DURATION"
     say "check 6: rollbase run --bus $IFACE --profile cia402 --trajectory scenario:seed000 $dur"
@@ -503,11 +509,7 @@ check7() {
         record 7 "CiA 402: controller killed -> drives fault" 1 "rollbase or rollbase-sim missing"
         return
     fi
-    candump -L "$IFACE" >"$W/c7-cap.log" 2>/dev/null &
-    cp=$!
-    rollbase-sim --bus "$IFACE" --profile cia402 --start scenario:seed000 >"$W/c7-sim.out" 2>"$W/c7-sim.err" &
-    sp=$!
-    sleep 1
+    start_cia402_sim c7
     rollbase run --bus "$IFACE" --profile cia402 --trajectory scenario:seed000 --json >"$W/c7-run.json" 2>"$W/c7-run.err" &
     rp=$!
     sleep 6

@@ -1365,4 +1365,48 @@ mod tests {
         .to_frame(1);
         assert_eq!(m.on_frame(&f, 1.0), Err(Reject::Unexpected));
     }
+
+    proptest::proptest! {
+        /// Bytes from the bus never panic the master, while booting or running: ids drawn
+        /// mostly from what its devices send, any length, any payload are either used,
+        /// ignored or rejected.
+        #[test]
+        fn arbitrary_frames_never_panic_the_master(
+            frames in proptest::collection::vec(
+                (
+                    proptest::prop_oneof![
+                        // What devices 1 (drive), 2 (steering) and 9 (encoder) send.
+                        proptest::sample::select(vec![
+                            0x081u16, 0x082, 0x181, 0x182, 0x189, 0x281, 0x282, 0x581, 0x589,
+                            0x701, 0x709,
+                        ]),
+                        0u16..0x800,
+                    ],
+                    proptest::collection::vec(proptest::num::u8::ANY, 0..=8),
+                ),
+                1..200,
+            ),
+            boot_first in proptest::bool::ANY,
+        ) {
+            let cfg = Cia402Config::for_wheels(4);
+            let mut m = Master::new(&cfg, 0.004);
+            if boot_first {
+                let mut dev = devices(&cfg);
+                run_boot(&mut m, &mut dev, 200);
+            }
+            let mut buf = FrameBuf::new();
+            let sp = [Setpoint::default(); 4];
+            for (k, (id, data)) in frames.iter().enumerate() {
+                let t = 1.0 + k as f64 * 0.001;
+                let f = CanFrame::new(*id, data).expect("id < 0x800, len <= 8");
+                let _ = m.on_frame(&f, t);
+                if k % 4 == 0 {
+                    buf.clear();
+                    m.start_cycle(t, &mut buf);
+                    buf.clear();
+                    m.finish_cycle(t, &sp, &mut buf);
+                }
+            }
+        }
+    }
 }

@@ -191,6 +191,38 @@ fn valid_transmission(dir: Mappable, t: u8) -> bool {
     }
 }
 
+/// Adds one PDO's communication (`comm`) and mapping (`map`) records: sub 0 = 5 entries,
+/// COB-ID, transmission type, inhibit time (TPDOs only), event timer, and a mapping of
+/// `first` alone (or empty) with room for 8 entries.
+fn add_pdo(
+    d: &mut Dictionary,
+    comm: u16,
+    map: u16,
+    cob_id: u32,
+    transmission: u32,
+    tpdo: bool,
+    first: Option<MapEntry>,
+) {
+    use Access::{Const, Rw};
+    use Mappable as M;
+    d.add(comm, 0, 1, Const, M::No, 5);
+    d.add(comm, 1, 4, Rw, M::No, cob_id);
+    d.add(comm, 2, 1, Rw, M::No, transmission);
+    if tpdo {
+        d.add(comm, 3, 2, Rw, M::No, 0);
+    }
+    d.add(comm, 5, 2, Rw, M::No, 0);
+    d.add(map, 0, 1, Rw, M::No, u32::from(first.is_some()));
+    for s in 1..=8u8 {
+        let v = if s == 1 {
+            first.map_or(0, MapEntry::raw)
+        } else {
+            0
+        };
+        d.add(map, s, 4, Rw, M::No, v);
+    }
+}
+
 impl Device {
     /// Device `role` of wheel `wheel` with the node, units and homing offset of `cfg`,
     /// powered on at time 0 and initialising for `boot_time`.
@@ -281,28 +313,14 @@ impl Device {
             } else {
                 od::PDO_COB_INVALID | od::PDO_COB_NO_RTR | base
             };
-            d.add(comm, 0, 1, Const, M::No, 5);
-            d.add(comm, 1, 4, Rw, M::No, cob_id);
             let default_type = if drive { 255 } else { 1 };
-            d.add(
-                comm,
-                2,
-                1,
-                Rw,
-                M::No,
-                if n == 0 { default_type } else { 255 },
-            );
-            d.add(comm, 3, 2, Rw, M::No, 0);
-            d.add(comm, 5, 2, Rw, M::No, 0);
             let first = match (n, drive) {
-                (0, true) => (1, MapEntry::new(od::STATUSWORD, 0, 16).raw()),
-                (0, false) => (1, MapEntry::new(od::POSITION_VALUE, 0, 32).raw()),
-                _ => (0, 0),
+                (0, true) => Some(MapEntry::new(od::STATUSWORD, 0, 16)),
+                (0, false) => Some(MapEntry::new(od::POSITION_VALUE, 0, 32)),
+                _ => None,
             };
-            d.add(map, 0, 1, Rw, M::No, first.0);
-            for s in 1..=8u8 {
-                d.add(map, s, 4, Rw, M::No, if s == 1 { first.1 } else { 0 });
-            }
+            let ty = if n == 0 { default_type } else { 255 };
+            add_pdo(d, comm, map, cob_id, ty, true, first);
         }
         if drive {
             for n in 0..tpdos {
@@ -314,19 +332,8 @@ impl Device {
                 } else {
                     od::PDO_COB_INVALID | base
                 };
-                d.add(comm, 0, 1, Const, M::No, 5);
-                d.add(comm, 1, 4, Rw, M::No, cob_id);
-                d.add(comm, 2, 1, Rw, M::No, 255);
-                d.add(comm, 5, 2, Rw, M::No, 0);
-                let first = if n == 0 {
-                    (1, MapEntry::new(od::CONTROLWORD, 0, 16).raw())
-                } else {
-                    (0, 0)
-                };
-                d.add(map, 0, 1, Rw, M::No, first.0);
-                for s in 1..=8u8 {
-                    d.add(map, s, 4, Rw, M::No, if s == 1 { first.1 } else { 0 });
-                }
+                let first = (n == 0).then(|| MapEntry::new(od::CONTROLWORD, 0, 16));
+                add_pdo(d, comm, map, cob_id, 255, false, first);
             }
             d.add(od::CONSUMER_HEARTBEAT, 0, 1, Const, M::No, 1);
             d.add(od::CONSUMER_HEARTBEAT, 1, 4, Rw, M::No, 0);
@@ -1664,5 +1671,41 @@ mod tests {
         assert_eq!(e.dev.nmt(), DeviceNmt::PreOperational);
         e.frame(nmt::command(NmtCommand::Start, 0));
         assert_eq!(e.dev.nmt(), DeviceNmt::Operational);
+    }
+
+    proptest::proptest! {
+        /// Bytes from the bus never panic a simulated device, drive or encoder: ids are
+        /// drawn mostly from the ones it listens to (NMT, SYNC, its RPDOs and SDO server,
+        /// the master's heartbeat), with any length and payload, between timer ticks.
+        #[test]
+        fn arbitrary_frames_never_panic_a_device(
+            frames in proptest::collection::vec(
+                (
+                    proptest::prop_oneof![
+                        proptest::sample::select(vec![
+                            0x000u16, 0x080, 0x201, 0x301, 0x401, 0x501, 0x601, 0x77F,
+                        ]),
+                        0u16..0x800,
+                    ],
+                    proptest::collection::vec(proptest::num::u8::ANY, 0..=8),
+                ),
+                1..300,
+            ),
+            drive in proptest::bool::ANY,
+        ) {
+            let mut r = Rig::booted(if drive { Role::Drive } else { Role::Leg });
+            // Operational first, so PDOs are processed too.
+            let start = nmt::command(NmtCommand::Start, r.node());
+            let (t, sensors) = (r.t, r.sensors);
+            r.dev.handle_frame(t, &start, &sensors, &mut |_| {});
+            for (id, data) in &frames {
+                let f = CanFrame::new(*id, data).expect("id < 0x800, len <= 8");
+                let (t, sensors) = (r.t, r.sensors);
+                let sent = &mut r.sent;
+                r.dev.handle_frame(t, &f, &sensors, &mut |f| sent.push(f));
+                r.advance(at_ms(1));
+                r.sent.clear();
+            }
+        }
     }
 }
