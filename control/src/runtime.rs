@@ -91,7 +91,7 @@ impl Default for RuntimeConfig {
             controller: ControllerKind::Dfl,
             avoidance: None,
             supervisor: SupervisorConfig::default(),
-            feedback_window: 0.002,
+            feedback_window: rollbase_driver::busload::DEFAULT_FEEDBACK_WINDOW_S,
             counter_policy: CounterPolicy::AcceptWithLoss,
             linger_cycles: 25,
         }

@@ -14,6 +14,11 @@
 
 use std::fmt;
 
+/// The controller's default feedback window after SYNC (s): the time the devices' answers
+/// have to arrive before the control step. `rollbase_control`'s runtime takes its default
+/// from here, so the bus-load reports compare against the value the controller uses.
+pub const DEFAULT_FEEDBACK_WINDOW_S: f64 = 0.002;
+
 use crate::protocol::{spec, MessageKind, BITRATE, MAX_NODE};
 
 /// Worst-case bits on the wire (including stuffing and intermission) of a classic

@@ -15,7 +15,7 @@
 
 use super::config::Cia402Config;
 use super::pdo;
-use crate::busload::{frame_bits, write_table, BusLoadRow};
+use crate::busload::{frame_bits, write_table, BusLoadRow, DEFAULT_FEEDBACK_WINDOW_S};
 use std::fmt;
 
 /// The steady-state load of the profile on a bus.
@@ -40,10 +40,6 @@ pub struct Cia402Load {
     /// Worst-case time on the wire of SYNC plus every TPDO1 answering it (s).
     pub feedback_burst_s: f64,
 }
-
-/// The controller's default feedback window after SYNC (s); `control`'s runtime owns the
-/// setting, the report only compares against its default.
-pub const DEFAULT_FEEDBACK_WINDOW_S: f64 = 0.002;
 
 impl Cia402Load {
     /// Unused capacity, % of the bit rate.
