@@ -1,8 +1,10 @@
 //! rollbase-control: the math and the loop.
 //!
 //! Pure cores (models, trajectories, controllers, odometry, avoidance, supervisor) take
-//! time and measurements as arguments and return values; the runtime and the recorder are
-//! thin adapters around them.
+//! time and measurements as arguments and return values; the runtime drivers (lockstep, real
+//! time) are thin adapters around them. No file formats, middleware or plotting here: those
+//! live in the application layer (the `rollbase` package), so a user can depend on this crate
+//! alone without pulling IO.
 #![deny(missing_docs)]
 
 pub mod angle;
@@ -14,7 +16,6 @@ pub mod link;
 pub mod model;
 pub mod odometry;
 pub mod platform;
-pub mod plot;
 pub mod record;
 pub mod runtime;
 pub mod scenario;

@@ -1,6 +1,6 @@
 //! Determinism: the same seed gives byte-identical MCAP message payloads.
 
-use rollbase_control::record::{read_recording, McapRecorder};
+use rollbase::record::{read_recording, McapRecorder};
 use rollbase_control::scenario::Scenario;
 use rollbase_tests::{run_with, RunOptions};
 use std::collections::BTreeMap;

@@ -18,7 +18,7 @@
 //! * Tracking errors compare the reference actually tracked (`/reference` `z`, i.e. nominal
 //!   plus avoidance deviation) with the true pose and legs when the run was simulated
 //!   (`/pose` `true_*`), else with the estimated pose and the measured legs (`/feedback`).
-//!   The heading error is wrapped with [`crate::angle::diff`].
+//!   The heading error is wrapped with [`rollbase_control::angle::diff`].
 //! * Footprints are the wheel contact points of `/icr` (`wheel_x`, `wheel_y`, body frame)
 //!   mapped to the world by the pose of the same cycle (true pose when present):
 //!   `p_world = (x, y) + R(θ)·p_body`. The ICR is mapped the same way when it is finite.
@@ -915,7 +915,7 @@ fn tracking_errors(d: &Data, style: &Style, ctx: &Ctx) -> Result<(), PlotError> 
         let q = d.shown_pose(p);
         exi[0].push((p.t, at(&r.z, 0) - q[0]));
         exi[1].push((p.t, at(&r.z, 1) - q[1]));
-        exi[2].push((p.t, crate::angle::diff(at(&r.z, 2), q[2])));
+        exi[2].push((p.t, rollbase_control::angle::diff(at(&r.z, 2), q[2])));
         let fb = p.cycle.and_then(|c| d.feedback_legs.get(&c));
         for (i, e) in elam.iter_mut().enumerate() {
             let truth = at(&p.true_legs, i);
@@ -1245,8 +1245,9 @@ fn timing(d: &Data, style: &Style, ctx: &Ctx) -> Result<(), PlotError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::record::{CycleRecord, McapRecorder};
-    use crate::types::{Pose, MAX_WHEELS};
+    use crate::record::McapRecorder;
+    use rollbase_control::record::CycleRecord;
+    use rollbase_control::types::{Pose, MAX_WHEELS};
     use std::collections::BTreeMap;
 
     fn tmp(name: &str) -> PathBuf {

@@ -1,0 +1,324 @@
+//! The lockstep driver: the cycle core and a simulated peer on virtual time.
+
+use super::CycleCore;
+use crate::record::CycleRecord;
+use crate::types::{Pose, MAX_WHEELS};
+use rollbase_driver::bus::BusError;
+use rollbase_driver::frame::{CanFrame, FrameBuf, TimestampedFrame};
+use std::time::Duration;
+
+/// A simulated peer on the bus for lockstep runs (the simulator implements it).
+pub trait LockstepPeer {
+    /// A frame reached the peer at `now`.
+    fn on_frame(&mut self, now: Duration, frame: &CanFrame);
+    /// Advance the peer's own time (plant, watchdogs) to `now`.
+    fn advance_to(&mut self, now: Duration);
+    /// Frames the peer wants to send, with their send times.
+    fn drain_tx(&mut self, out: &mut dyn FnMut(Duration, CanFrame));
+    /// True pose and legs, when the peer knows them.
+    fn truth(&self) -> Option<(Pose, [f64; MAX_WHEELS])> {
+        None
+    }
+}
+
+/// The lockstep bus: what [`run_lockstep`] needs from the in-process virtual bus.
+pub trait LockstepBus {
+    /// Sets the bus's virtual time.
+    fn set_time(&mut self, t: Duration);
+    /// Sends from the controller's node.
+    fn controller_send(&mut self, f: &CanFrame) -> Result<(), BusError>;
+    /// Receives at the controller's node (non-blocking).
+    fn controller_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError>;
+    /// Sends from the simulator's node.
+    fn peer_send(&mut self, f: &CanFrame) -> Result<(), BusError>;
+    /// Receives at the simulator's node (non-blocking).
+    fn peer_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError>;
+}
+
+/// The in-process virtual bus on a virtual clock with a controller node and a simulator node.
+pub struct VirtualLockstepBus {
+    /// The bus (virtual clock).
+    pub bus: rollbase_driver::bus::virtual_bus::VirtualBus,
+    /// The controller's node.
+    pub controller: rollbase_driver::bus::virtual_bus::VirtualNode,
+    /// The simulator's node.
+    pub peer: rollbase_driver::bus::virtual_bus::VirtualNode,
+}
+
+impl VirtualLockstepBus {
+    /// A virtual-clock bus with the given fault model and seed.
+    pub fn new(faults: rollbase_driver::fault::FaultModel, seed: u64) -> Self {
+        use rollbase_driver::bus::virtual_bus::{BusClock, VirtualBus, VirtualBusConfig};
+        let bus = VirtualBus::new(VirtualBusConfig {
+            clock: BusClock::Virtual,
+            faults,
+            seed,
+            queue_capacity: 1024,
+        });
+        let controller = bus.node("controller");
+        let peer = bus.node("simulator");
+        Self {
+            bus,
+            controller,
+            peer,
+        }
+    }
+}
+
+impl LockstepBus for VirtualLockstepBus {
+    fn set_time(&mut self, t: Duration) {
+        self.bus.set_time(t);
+    }
+    fn controller_send(&mut self, f: &CanFrame) -> Result<(), BusError> {
+        self.controller.send(f)
+    }
+    fn controller_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError> {
+        self.controller.try_recv()
+    }
+    fn peer_send(&mut self, f: &CanFrame) -> Result<(), BusError> {
+        self.peer.send(f)
+    }
+    fn peer_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError> {
+        self.peer.try_recv()
+    }
+}
+
+/// Timing and outcome of a lockstep run.
+#[derive(Clone, Debug, Default)]
+pub struct LockstepReport {
+    /// Cycles run.
+    pub cycles: u64,
+    /// Wall-clock compute time of each cycle's control step (µs), for reports only.
+    pub compute_us: Vec<f64>,
+    /// Wall time of the whole run (s).
+    pub wall_s: f64,
+}
+
+/// What one lockstep cycle may do differently (fault campaigns, measurements). The default
+/// is a normal cycle.
+#[derive(Default)]
+pub struct StepHooks<'a> {
+    /// The controller is dead this cycle: no SYNC, no control step, no SETPOINT; its receive
+    /// queue is drained so it cannot overflow.
+    pub controller_silent: bool,
+    /// The controller's interface is down this cycle: its sends and receives fail (the core
+    /// sees a bus error) and what reached it is lost.
+    pub iface_down: bool,
+    /// Sees every frame the controller receives and emits what the controller gets instead
+    /// (the frame itself, a changed frame, extra frames, or nothing).
+    #[allow(clippy::type_complexity)]
+    pub on_rx: Option<&'a mut dyn FnMut(&CanFrame, &mut dyn FnMut(CanFrame))>,
+    /// Called with `true` right before and `false` right after each group of calls into the
+    /// cycle core (`start_cycle`; `on_frame` … `finish_cycle`): to count allocations or time
+    /// the core alone.
+    pub around_core: Option<&'a mut dyn FnMut(bool)>,
+}
+
+/// The lockstep driver's own state between cycles (time, the peer's queued frames, buffers).
+pub struct LockstepState {
+    k: u64,
+    period: f64,
+    window: f64,
+    pending: Vec<(Duration, CanFrame)>,
+    out: FrameBuf,
+    rx_buf: Vec<(f64, CanFrame)>,
+    /// Frames the controller lost because its interface was down.
+    pub lost_iface_down: u64,
+}
+
+impl LockstepState {
+    /// State for `core`'s platform and feedback window, at cycle 0.
+    pub fn new(core: &CycleCore) -> Self {
+        let period = core.platform().dt();
+        Self {
+            k: 0,
+            period,
+            window: core.config().feedback_window.clamp(0.0, period),
+            pending: Vec::with_capacity(64),
+            out: FrameBuf::new(),
+            rx_buf: Vec::with_capacity(64),
+            lost_iface_down: 0,
+        }
+    }
+
+    /// Cycles run so far.
+    pub fn cycle(&self) -> u64 {
+        self.k
+    }
+
+    /// Start time of the next cycle (s).
+    pub fn time(&self) -> f64 {
+        self.k as f64 * self.period
+    }
+
+    /// The feedback window inside the cycle (s after SYNC).
+    pub fn window(&self) -> f64 {
+        self.window
+    }
+
+    fn flush_peer(
+        &mut self,
+        bus: &mut dyn LockstepBus,
+        peer: &mut dyn LockstepPeer,
+        until: Duration,
+    ) {
+        let pending = &mut self.pending;
+        peer.drain_tx(&mut |t, f| pending.push((t, f)));
+        // Stable sort keeps the peer's order among frames with equal send times.
+        pending.sort_by_key(|(t, _)| *t);
+        let mut sent = 0;
+        for (t, f) in pending.iter() {
+            if *t > until {
+                break;
+            }
+            bus.set_time(*t);
+            // A failed send from the simulated peer is the same as a lost frame.
+            let _ = bus.peer_send(f);
+            sent += 1;
+        }
+        pending.drain(..sent);
+    }
+}
+
+fn deliver_to_peer(bus: &mut dyn LockstepBus, peer: &mut dyn LockstepPeer) {
+    while let Ok(Some(f)) = bus.peer_recv() {
+        peer.on_frame(f.timestamp, &f.frame);
+    }
+}
+
+/// One lockstep cycle: the peer catches up to the cycle start (its frames go out in time
+/// order), SYNC, the peer answers, frames up to the end of the feedback window reach the
+/// controller, the control step, the setpoints reach the peer. The record carries the
+/// ground truth at the SYNC (when the modules sample their encoders) and virtual timing.
+/// Returns `false` when the controller was silent this cycle (no record was made).
+pub fn lockstep_cycle(
+    st: &mut LockstepState,
+    core: &mut CycleCore,
+    bus: &mut dyn LockstepBus,
+    peer: &mut dyn LockstepPeer,
+    hooks: &mut StepHooks<'_>,
+) -> bool {
+    let k = st.k;
+    st.k += 1;
+    let t0 = Duration::from_secs_f64(k as f64 * st.period);
+    let t_win = Duration::from_secs_f64(k as f64 * st.period + st.window);
+    peer.advance_to(t0);
+    let truth_at_sync = peer.truth();
+    st.flush_peer(bus, peer, t0);
+    bus.set_time(t0);
+    let mut around = |on: bool| {
+        if let Some(h) = hooks.around_core.as_mut() {
+            h(on)
+        }
+    };
+    if !hooks.controller_silent {
+        around(true);
+        core.start_cycle(t0.as_secs_f64(), &mut st.out);
+        around(false);
+        for f in st.out.as_slice() {
+            if hooks.iface_down || bus.controller_send(f).is_err() {
+                core.report_bus_error();
+            }
+        }
+    }
+    deliver_to_peer(bus, peer);
+    peer.advance_to(t_win);
+    st.flush_peer(bus, peer, t_win);
+    bus.set_time(t_win);
+    if hooks.controller_silent {
+        while let Ok(Some(_)) = bus.controller_recv() {}
+        return false;
+    }
+    st.rx_buf.clear();
+    loop {
+        match bus.controller_recv() {
+            Ok(Some(_)) if hooks.iface_down => st.lost_iface_down += 1,
+            Ok(Some(f)) => {
+                let t = f.timestamp.as_secs_f64();
+                let buf = &mut st.rx_buf;
+                match hooks.on_rx.as_mut() {
+                    Some(h) => h(&f.frame, &mut |g| buf.push((t, g))),
+                    None => buf.push((t, f.frame)),
+                }
+            }
+            Ok(None) => break,
+            Err(_) => {
+                core.report_bus_error();
+                break;
+            }
+        }
+    }
+    if hooks.iface_down {
+        core.report_bus_error();
+    }
+    let mut around = |on: bool| {
+        if let Some(h) = hooks.around_core.as_mut() {
+            h(on)
+        }
+    };
+    around(true);
+    for (t, f) in &st.rx_buf {
+        core.on_frame(f, *t);
+    }
+    core.finish_cycle(t_win.as_secs_f64(), &mut st.out);
+    around(false);
+    for f in st.out.as_slice() {
+        if hooks.iface_down || bus.controller_send(f).is_err() {
+            core.report_bus_error();
+        }
+    }
+    deliver_to_peer(bus, peer);
+    let rec = core.record_mut();
+    rec.truth = truth_at_sync;
+    rec.timing.period_us = st.period * 1e6;
+    rec.timing.wakeup_latency_us = 0.0;
+    rec.timing.compute_us = 0.0;
+    true
+}
+
+/// Runs the core and a peer on virtual time until the core is done, `max_cycles` elapse,
+/// or `stop_at_cycle` requests an operator stop. Each record is passed to `sink`.
+pub fn run_lockstep(
+    core: &mut CycleCore,
+    bus: &mut dyn LockstepBus,
+    peer: &mut dyn LockstepPeer,
+    max_cycles: u64,
+    stop_at_cycle: Option<u64>,
+    sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
+) -> LockstepReport {
+    let mut report = LockstepReport {
+        compute_us: Vec::with_capacity(max_cycles.min(1 << 20) as usize),
+        ..Default::default()
+    };
+    let wall = std::time::Instant::now();
+    let mut st = LockstepState::new(core);
+    core.arm();
+    for k in 0..max_cycles {
+        if Some(k) == stop_at_cycle {
+            core.request_stop();
+        }
+        // Wall-clock time spent inside the core, for reports only (never recorded).
+        let mut spent = Duration::ZERO;
+        let mut entered = std::time::Instant::now();
+        let mut timer = |on: bool| {
+            if on {
+                entered = std::time::Instant::now();
+            } else {
+                spent += entered.elapsed();
+            }
+        };
+        let mut hooks = StepHooks {
+            around_core: Some(&mut timer),
+            ..Default::default()
+        };
+        lockstep_cycle(&mut st, core, bus, peer, &mut hooks);
+        report.compute_us.push(spent.as_secs_f64() * 1e6);
+        sink(core.record(), core.wheel_xy());
+        report.cycles = k + 1;
+        if core.done() {
+            break;
+        }
+    }
+    report.wall_s = wall.elapsed().as_secs_f64();
+    report
+}

@@ -1,0 +1,129 @@
+//! The 250 Hz cycle: a sans-IO cycle core, a lockstep driver on virtual time, and the
+//! real-time cycle thread. All three share the same step code.
+//!
+//! One cycle (DESIGN.md "The 250 Hz cycle"):
+//!
+//! ```text
+//!  t_k            t_k + window                         t_k + period
+//!   │ SYNC ──►     │ decode → odometry → supervisor →   │
+//!   │ feedback ◄── │ avoidance → controller → encode    │
+//!   │              │ SETPOINT ──► (one per module)      │
+//! ```
+//!
+//! [`CycleCore`] is the whole cycle minus IO and clocks: [`CycleCore::start_cycle`] returns the
+//! SYNC frame, [`CycleCore::on_frame`] takes every received frame, and
+//! [`CycleCore::finish_cycle`] runs the control step and returns the setpoint frames and the
+//! cycle's [`CycleRecord`]. It never allocates after construction.
+//!
+//! [`run_lockstep`] drives the core and a simulated bus peer (the simulator) on virtual time:
+//! deterministic and as fast as the CPU allows. [`run_realtime`] drives it from a cycle thread
+//! with absolute deadlines (`clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)`), optionally
+//! SCHED_FIFO and locked memory, and hands records to a recorder over a bounded channel with
+//! `try_send` (a full channel drops the record and counts it: the cycle never blocks on IO).
+//!
+//! The module is split by job: [`core`] (the cycle without IO), [`lockstep`] (virtual time),
+//! [`realtime`] (the cycle thread) and [`summary`] (the figures of a run).
+
+mod core;
+mod lockstep;
+mod realtime;
+mod summary;
+
+pub use self::core::{check_feasible, CycleCore, FAULT_RESET_CYCLES};
+pub use self::lockstep::{
+    lockstep_cycle, run_lockstep, LockstepBus, LockstepPeer, LockstepReport, LockstepState,
+    StepHooks, VirtualLockstepBus,
+};
+pub use self::realtime::{realtime_setup, run_realtime, RealtimeOptions, RealtimeReport};
+pub use self::summary::{percentile, RunSummary};
+
+use crate::avoidance::AvoidanceConfig;
+use crate::supervisor::SupervisorConfig;
+use rollbase_driver::bus::BusError;
+use rollbase_driver::rx::CounterPolicy;
+
+/// Which tracking controller the runtime uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ControllerKind {
+    /// Dynamic feedback linearization (seed 000).
+    Dfl,
+    /// Kinematic tracking with inverse kinematics.
+    Kinematic,
+}
+
+impl std::str::FromStr for ControllerKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "dfl" => Ok(Self::Dfl),
+            "kinematic" | "kin" => Ok(Self::Kinematic),
+            other => Err(format!(
+                "unknown controller `{other}`: use `dfl` or `kinematic`"
+            )),
+        }
+    }
+}
+
+/// Runtime options shared by lockstep and real time.
+#[derive(Clone, Debug)]
+pub struct RuntimeConfig {
+    /// Tracking controller.
+    pub controller: ControllerKind,
+    /// Singularity avoidance (`None` = off).
+    pub avoidance: Option<AvoidanceConfig>,
+    /// Supervisor thresholds.
+    pub supervisor: SupervisorConfig,
+    /// Feedback collection window inside the cycle (s after SYNC).
+    pub feedback_window: f64,
+    /// Counter policy of the receive path. The default accepts a frame after a counter jump
+    /// (and counts the loss) so one lost frame costs one frame, not two.
+    pub counter_policy: CounterPolicy,
+    /// Cycles to stay in Stopped/Fault at rest before the run reports itself done.
+    pub linger_cycles: u32,
+}
+
+impl Default for RuntimeConfig {
+    fn default() -> Self {
+        Self {
+            controller: ControllerKind::Dfl,
+            avoidance: None,
+            supervisor: SupervisorConfig::default(),
+            feedback_window: rollbase_driver::busload::DEFAULT_FEEDBACK_WINDOW_S,
+            counter_policy: CounterPolicy::AcceptWithLoss,
+            linger_cycles: 25,
+        }
+    }
+}
+
+/// Errors that stop a run before or while it starts.
+#[derive(Debug, thiserror::Error)]
+pub enum RuntimeError {
+    /// The trajectory and the platform disagree.
+    #[error("trajectory has {traj} legs but the platform has {platform} wheels")]
+    LegCount {
+        /// Legs in the trajectory.
+        traj: usize,
+        /// Wheels on the platform.
+        platform: usize,
+    },
+    /// The platform description is invalid.
+    #[error(transparent)]
+    Config(#[from] crate::platform::ConfigError),
+    /// The bus failed in a way the run cannot continue from.
+    #[error("bus error: {0}")]
+    Bus(#[from] BusError),
+    /// The trajectory needs more than a limit of the platform allows.
+    #[error("infeasible trajectory: at t = {t:.3} s wheel {} needs {value:.3} but `limits.{field}` = {limit:.3}; slow the trajectory down or raise the limit in the platform file", wheel + 1)]
+    Infeasible {
+        /// The limit's field name in the platform file.
+        field: &'static str,
+        /// Wheel index (0-based).
+        wheel: usize,
+        /// Time of the first violating sample (s).
+        t: f64,
+        /// The value the trajectory needs.
+        value: f64,
+        /// The limit.
+        limit: f64,
+    },
+}

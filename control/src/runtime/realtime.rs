@@ -1,0 +1,253 @@
+//! The real-time cycle thread: absolute deadlines, two wake-ups per cycle.
+
+use super::CycleCore;
+use crate::record::CycleRecord;
+use rollbase_driver::bus::CanBus;
+use rollbase_driver::frame::FrameBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{SyncSender, TrySendError};
+
+/// Options of the real-time cycle thread.
+#[derive(Clone, Debug)]
+pub struct RealtimeOptions {
+    /// Try SCHED_FIFO at this priority (1..=99); `None` = normal scheduling.
+    pub fifo_priority: Option<i32>,
+    /// Try to lock memory (mlockall).
+    pub lock_memory: bool,
+    /// Stop after this many cycles (None = until done or stopped).
+    pub max_cycles: Option<u64>,
+}
+
+impl Default for RealtimeOptions {
+    fn default() -> Self {
+        Self {
+            fifo_priority: Some(80),
+            lock_memory: true,
+            max_cycles: None,
+        }
+    }
+}
+
+/// What the real-time thread reports at the end.
+#[derive(Clone, Debug, Default)]
+pub struct RealtimeReport {
+    /// Cycles run.
+    pub cycles: u64,
+    /// Cycles whose control step finished after the next cycle's deadline.
+    pub deadline_misses: u64,
+    /// Records dropped because the recorder channel was full.
+    pub records_dropped: u64,
+    /// What the thread could set up (SCHED_FIFO, mlockall), for the operator.
+    pub setup: Vec<String>,
+    /// Bus errors seen.
+    pub bus_errors: u64,
+}
+
+fn monotonic_now() -> libc::timespec {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes into the provided timespec; CLOCK_MONOTONIC always exists.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    ts
+}
+
+fn ts_ns(ts: &libc::timespec) -> i128 {
+    ts.tv_sec as i128 * 1_000_000_000 + ts.tv_nsec as i128
+}
+
+fn ns_ts(ns: i128) -> libc::timespec {
+    libc::timespec {
+        tv_sec: (ns / 1_000_000_000) as libc::time_t,
+        tv_nsec: (ns % 1_000_000_000) as libc::c_long,
+    }
+}
+
+fn sleep_until(ns: i128) {
+    let ts = ns_ts(ns);
+    loop {
+        // SAFETY: absolute sleep on CLOCK_MONOTONIC with a valid timespec; a null remainder is
+        // allowed with TIMER_ABSTIME.
+        let r = unsafe {
+            libc::clock_nanosleep(
+                libc::CLOCK_MONOTONIC,
+                libc::TIMER_ABSTIME,
+                &ts,
+                std::ptr::null_mut(),
+            )
+        };
+        if r != libc::EINTR {
+            break;
+        }
+    }
+}
+
+/// Hands every frame waiting on `bus` to the core, stamped `t`; a non-retryable receive
+/// error is reported to the core (bus-error fault) and ends the drain.
+fn drain(bus: &mut dyn CanBus, core: &mut CycleCore, t: f64, report: &mut RealtimeReport) {
+    loop {
+        match bus.try_recv() {
+            Ok(Some(f)) => core.on_frame(&f.frame, t),
+            Ok(None) => break,
+            Err(e) if e.is_retryable() => break,
+            Err(_) => {
+                core.report_bus_error();
+                report.bus_errors += 1;
+                break;
+            }
+        }
+    }
+}
+
+/// Sends every frame of `out`; a non-retryable error is reported to the core (bus-error
+/// fault), a retryable one drops that frame.
+fn send_all(
+    bus: &mut dyn CanBus,
+    core: &mut CycleCore,
+    out: &FrameBuf,
+    report: &mut RealtimeReport,
+) {
+    for f in out.as_slice() {
+        if let Err(e) = bus.send(f) {
+            if !e.is_retryable() {
+                core.report_bus_error();
+                report.bus_errors += 1;
+            }
+        }
+    }
+}
+
+/// Tries SCHED_FIFO and mlockall as asked; returns one line per attempt for the operator.
+pub fn realtime_setup(opts: &RealtimeOptions) -> Vec<String> {
+    let mut out = Vec::new();
+    if let Some(prio) = opts.fifo_priority {
+        let param = libc::sched_param {
+            sched_priority: prio.clamp(1, 99),
+        };
+        // SAFETY: sets the calling thread's scheduling policy; the parameter is valid.
+        let r = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) };
+        if r == 0 {
+            out.push(format!(
+                "cycle thread runs SCHED_FIFO priority {}",
+                param.sched_priority
+            ));
+        } else {
+            out.push(format!(
+                "SCHED_FIFO not permitted ({}): running with normal scheduling; grant CAP_SYS_NICE or an rtprio limit for real-time priority",
+                std::io::Error::last_os_error()
+            ));
+        }
+    }
+    if opts.lock_memory {
+        // SAFETY: mlockall has no memory-safety preconditions.
+        let r = unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) };
+        if r == 0 {
+            out.push("memory locked (mlockall)".into());
+        } else {
+            out.push(format!(
+                "mlockall not permitted ({}): memory may be paged; raise the memlock limit or grant CAP_IPC_LOCK",
+                std::io::Error::last_os_error()
+            ));
+        }
+    }
+    out
+}
+
+/// Runs the cycle on the calling thread in real time until done, stopped by `stop` (a
+/// controlled stop, then exit) or `max_cycles`. Records go to `sink` with `try_send`.
+///
+/// `time_origin_unix_ns` is added to record log times so recordings carry Unix time.
+pub fn run_realtime(
+    core: &mut CycleCore,
+    bus: &mut dyn CanBus,
+    stop: &AtomicBool,
+    sink: Option<&SyncSender<CycleRecord>>,
+    opts: &RealtimeOptions,
+    time_origin_unix_ns: u64,
+) -> RealtimeReport {
+    let mut report = RealtimeReport {
+        setup: realtime_setup(opts),
+        ..Default::default()
+    };
+    let period_ns = (core.platform().dt() * 1e9).round() as i128;
+    let window_ns = (core.config().feedback_window * 1e9).round() as i128;
+    let start = ts_ns(&monotonic_now()) + period_ns;
+    let mut out = FrameBuf::new();
+    let mut prev_wake: Option<i128> = None;
+    let mut stop_sent = false;
+    core.arm();
+    let mut k: u64 = 0;
+    let mut deadline = start;
+    loop {
+        if let Some(m) = opts.max_cycles {
+            if k >= m {
+                break;
+            }
+        }
+        sleep_until(deadline);
+        let wake = ts_ns(&monotonic_now());
+        let t = (wake - start) as f64 * 1e-9;
+        let td = (deadline - start) as f64 * 1e-9;
+        if !stop_sent && stop.load(Ordering::Relaxed) {
+            core.request_stop();
+            stop_sent = true;
+        }
+        // Answers that arrived after the last window belong to the previous SYNC: hand them
+        // over first, stamped just before this SYNC, so they count as late (not as this
+        // cycle's samples). Then SYNC (and whatever else is due at the cycle start), one sleep
+        // to the window's end, one drain: two wake-ups a cycle instead of one per frame (the
+        // cycle waits for the window's end anyway).
+        core.start_cycle(td, &mut out);
+        drain(bus, core, td - 1e-6, &mut report);
+        send_all(bus, core, &out, &mut report);
+        sleep_until(deadline + window_ns);
+        let now_rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
+        drain(bus, core, now_rt, &mut report);
+        let collected = ts_ns(&monotonic_now());
+        let tw = (collected - start) as f64 * 1e-9;
+        core.finish_cycle(tw, &mut out);
+        send_all(bus, core, &out, &mut report);
+        let done_ns = ts_ns(&monotonic_now());
+        let miss = done_ns > deadline + period_ns;
+        if miss {
+            report.deadline_misses += 1;
+        }
+        {
+            let rec = core.record_mut();
+            rec.t = td;
+            rec.log_time_ns = time_origin_unix_ns.saturating_add((deadline - start).max(0) as u64);
+            rec.timing.period_us =
+                prev_wake.map_or(period_ns as f64 / 1e3, |p| (wake - p) as f64 / 1e3);
+            rec.timing.wakeup_latency_us = (wake - deadline) as f64 / 1e3;
+            // Compute time: from the end of feedback collection to the last setpoint sent
+            // (the collection window itself is waiting, not computing).
+            rec.timing.compute_us = (done_ns - collected) as f64 / 1e3;
+            rec.timing.deadline_miss = miss;
+            let _ = t;
+        }
+        prev_wake = Some(wake);
+        if let Some(tx) = sink {
+            match tx.try_send(*core.record()) {
+                Ok(()) => {}
+                Err(TrySendError::Full(_)) => report.records_dropped += 1,
+                Err(TrySendError::Disconnected(_)) => report.records_dropped += 1,
+            }
+        }
+        k += 1;
+        report.cycles = k;
+        if core.done() {
+            break;
+        }
+        deadline += period_ns;
+        // Fell behind by more than a period: count the skipped cycles and resynchronise
+        // instead of bursting to catch up.
+        let now = ts_ns(&monotonic_now());
+        if now > deadline + period_ns {
+            let behind = (now - deadline) / period_ns;
+            report.deadline_misses += behind as u64;
+            deadline += behind * period_ns;
+        }
+    }
+    report
+}

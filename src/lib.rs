@@ -1,0 +1,12 @@
+//! rollbase's application layer: the adapters from the control stack's ports to the world.
+//!
+//! `rollbase-control` is a pure library (models, shaping, controllers, the sans-IO cycle core
+//! and its drivers); everything that touches a file format or a middleware lives here, so a
+//! user can depend on `rollbase-control` alone without pulling IO:
+//!
+//! - [`record`]: MCAP recordings of runs;
+//! - [`plot`]: PNG plots of a recording.
+#![deny(missing_docs)]
+
+pub mod plot;
+pub mod record;
