@@ -16,6 +16,7 @@ pub mod link;
 pub mod model;
 pub mod odometry;
 pub mod platform;
+pub mod ports;
 pub mod record;
 pub mod runtime;
 pub mod scenario;
