@@ -184,6 +184,35 @@ pub fn desaturate(cmd: &mut Command, ratio: f64) -> bool {
     false
 }
 
+/// Wheels that follow the reference's steering angle instead of their direction of travel:
+/// with a steering reference, those whose reference contact speed is below
+/// [`crate::limits::HOLD_SPEED`] (a wheel the ICR rests on, a platform at rest or aligning).
+/// Without one, none (the controllers' own rules apply).
+pub fn held_wheels(p: &Platform, r: &ReferenceSample) -> [bool; MAX_WHEELS] {
+    let mut held = [false; MAX_WHEELS];
+    if !r.steer.valid {
+        return held;
+    }
+    let tw = r.twist_world();
+    for (i, h) in held.iter_mut().enumerate().take(p.n().min(r.n).min(MAX_WHEELS)) {
+        let u = wheel_velocity_body(p, i, r.z[2], r.z[3 + i], &tw, r.dz[3 + i]);
+        *h = !(u[0].hypot(u[1]) >= crate::limits::HOLD_SPEED);
+    }
+    held
+}
+
+/// Steering-rate command of a held wheel ([`held_wheels`]): the reference's steering rate
+/// plus `steer_kp` × the angle error.
+pub fn held_steer_rate(p: &Platform, r: &ReferenceSample, i: usize, phi_meas: f64) -> f64 {
+    let e = angle::diff(r.steer.angle[i], phi_meas);
+    let v = r.steer.rate[i] + p.gains.steer_kp * if e.is_finite() { e } else { 0.0 };
+    if v.is_finite() {
+        v
+    } else {
+        0.0
+    }
+}
+
 /// Direction of wheel `i`'s reference contact velocity: atan2(u_i*) when |u_i*| ≥
 /// `REST_SPEED`, otherwise the direction it will take as the reference starts moving
 /// (u_i evaluated on the Taylor expansion of z* with ż*, z̈*, z⃛* at increasing look-ahead
@@ -215,7 +244,8 @@ pub fn reference_direction(p: &Platform, r: &ReferenceSample, i: usize) -> Optio
 /// open-loop alignment phase of seed 000 Sect. IV, point 2); wheels do not roll. The rate
 /// is `gains.steer_kp` × error, limited to `limits.steer_rate`. Returns the command and the
 /// largest remaining angle error (rad). Wheels whose reference direction is undefined
-/// (at rest for the whole look-ahead) keep their angle.
+/// (at rest for the whole look-ahead) keep their angle. A reference with a steering
+/// reference ([`crate::types::SteerReference`]) gives the target angles itself.
 pub fn alignment_command(
     p: &Platform,
     m: &Measurement,
@@ -225,7 +255,13 @@ pub fn alignment_command(
     let mut cmd = Command::zero(p.n().min(MAX_WHEELS));
     let mut worst: f64 = 0.0;
     for i in 0..n {
-        let Some(target) = reference_direction(p, reference, i) else {
+        // A source with a steering reference says where each wheel should point.
+        let target = if reference.steer.valid {
+            Some(reference.steer.angle[i])
+        } else {
+            reference_direction(p, reference, i)
+        };
+        let Some(target) = target else {
             continue;
         };
         let phi = m.wheels[i].steer_angle;
@@ -553,6 +589,7 @@ impl DflController {
         };
         let acc = [v[0], v[1], v[2]];
         let vel = [tw.vx, tw.vy, tw.omega];
+        let held = held_wheels(p, r);
         let mut min_speed = f64::INFINITY;
         for j in 0..n {
             let u0 = wheel_velocity_body(p, j, theta, legs[j], &tw, eta_leg_old[j]);
@@ -562,7 +599,11 @@ impl DflController {
             }
             let du =
                 wheel_acceleration_body(p, j, theta, legs[j], eta_leg_old[j], u_leg[j], vel, acc);
-            let (rate, _) = coordinated_steer(u0, du, phis[j], g.steer_kp);
+            let (rate, _) = if held[j] {
+                (held_steer_rate(p, r, j, phis[j]), 0.0)
+            } else {
+                coordinated_steer(u0, du, phis[j], g.steer_kp)
+            };
             let phi_mid = phis[j] + rate * h;
             let um = wheel_velocity_body(
                 p,

@@ -12,7 +12,11 @@
 //! 4. ±π branch chosen **for the whole platform**: a single flip flag; it toggles (with
 //!    hysteresis) only when the largest steering error under the current branch exceeds
 //!    π/2 + `FLIP_HYSTERESIS` and the other branch is better. No wheel flips alone.
-//! 5. Wheels whose contact speed is below [`crate::dfl::REST_SPEED`] hold their angle.
+//! 5. Wheels whose contact speed is below [`crate::dfl::REST_SPEED`] hold their angle; with a
+//!    steering reference, wheels whose *reference* contact speed is below
+//!    [`crate::limits::HOLD_SPEED`] follow the reference's angle and rate instead
+//!    ([`crate::dfl::held_wheels`]): the feedback's small corrections never turn a wheel the
+//!    ICR rests on.
 //! 6. Rolling speed = ± |u_i| cos(e_i) for steering error |e_i| < π/2, else 0: a wheel
 //!    that still points the wrong way does not roll, and rolls fully once aligned.
 //! 7. Desaturation (seed 004 Sect. on actuator limits, α_s scaling; WPILib
@@ -139,6 +143,7 @@ impl KinematicController {
         let mut moving = [false; MAX_WHEELS];
         let mut min_speed = f64::INFINITY;
         let mut fastest = (0usize, -1.0);
+        let held = crate::dfl::held_wheels(p, r);
         for i in 0..n {
             let leg = m.wheels[i].leg;
             let u = wheel_velocity_body(p, i, pose.theta, leg, &tw, cmdv[3 + i]);
@@ -157,7 +162,13 @@ impl KinematicController {
             if sp > fastest.1 {
                 fastest = (i, sp);
             }
-            if sp >= REST_SPEED {
+            if held[i] {
+                // Steered by the reference's angle; rolls its share of the commanded motion
+                // along its heading.
+                target[i] = r.steer.angle[i];
+                let phi = m.wheels[i].steer_angle;
+                speed[i] = u[0] * phi.cos() + u[1] * phi.sin();
+            } else if sp >= REST_SPEED {
                 let w = steer_from_velocity(u, du);
                 target[i] = w.steer_angle;
                 ff[i] = w.steer_rate;
@@ -186,7 +197,9 @@ impl KinematicController {
         // 5.–6. steering and rolling
         for i in 0..n {
             let phi = m.wheels[i].steer_angle;
-            let (rate, roll) = if moving[i] {
+            let (rate, roll) = if held[i] {
+                (crate::dfl::held_steer_rate(p, r, i, phi), speed[i])
+            } else if moving[i] {
                 let e = angle::diff(target[i] + off, phi);
                 let scale = if e.abs() < FRAC_PI_2 { e.cos() } else { 0.0 };
                 (ff[i] + g.steer_kp * e, sign * speed[i] * scale)

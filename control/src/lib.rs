@@ -9,17 +9,21 @@
 
 pub mod angle;
 pub mod avoidance;
+pub mod command;
 pub mod dfl;
 pub mod ideal_plant;
 pub mod kinematic;
+pub mod limits;
 pub mod link;
 pub mod model;
 pub mod odometry;
 pub mod platform;
+pub mod ramp;
 pub mod ports;
 pub mod record;
 pub mod runtime;
 pub mod scenario;
+pub mod shaper;
 pub mod supervisor;
 pub mod trajectory;
 pub mod types;

@@ -33,6 +33,21 @@
 //!
 //! Either way the twist is integrated exactly on SE(2) over dt
 //! ([`crate::model::se2_integrate`]).
+//!
+//! # Uncertainty
+//!
+//! The twist is a least-squares estimate x̂ = (AᵀA)⁻¹Aᵀb from 2n equations in 3 unknowns, so
+//! its covariance is Σ_v = σ² (AᵀA)⁻¹ with σ² the variance of one equation's error. It is
+//! estimated from the data: the residual sum of squares over its 2n − 3 degrees of freedom,
+//! floored by what the encoders' resolution alone leaves (a uniform quantisation error of
+//! one step q has variance q²/12: (r q_ω)²/12 along the wheel, (|u| q_φ)²/12 across it;
+//! [`EncoderResolution`]). The pose is propagated through the SE(2) step,
+//! P ← F P Fᵀ + G Σ_v Gᵀ · τ_c/dt, F = ∂ξ⁺/∂ξ (the heading error swings the displacement),
+//! G = ∂ξ⁺/∂v = R(θ) dt (and dt for θ). Twist errors are not independent from one cycle to
+//! the next (drive lag, encoder latency): over a correlation time τ_c
+//! ([`CORRELATION_TIME`]) they add up like one error held τ_c, hence the factor τ_c/dt.
+//! The covariance does not know systematic errors (a wrong wheel radius, a slipping wheel the
+//! residual does not see); the slip residual is reported separately.
 
 // Index loops over parallel per-wheel arrays read better than zipped iterators here.
 #![allow(clippy::needless_range_loop)]
@@ -45,6 +60,10 @@ use nalgebra::{Matrix3, Vector3};
 /// Result of one odometry update.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct OdometryOutput {
+    /// Covariance of the pose (x, y, θ) after the update (module docs, "Uncertainty").
+    pub pose_covariance: [[f64; 3]; 3],
+    /// Covariance of the least-squares body twist (v_x, v_y, ω).
+    pub twist_covariance: [[f64; 3]; 3],
     /// Pose after the update.
     pub pose: Pose,
     /// Least-squares body twist over the cycle (m/s, m/s, rad/s).
@@ -65,6 +84,27 @@ pub fn twist_from_wheels(
     legs: &[f64; MAX_WHEELS],
     leg_rates: &[f64; MAX_WHEELS],
 ) -> Option<(Twist, f64)> {
+    solve(p, n, w, legs, leg_rates).map(|s| (s.twist, s.rms))
+}
+
+/// The least-squares solution with what its covariance needs.
+struct Solution {
+    twist: Twist,
+    /// RMS per-wheel mismatch (m/s).
+    rms: f64,
+    /// Sum of squared residuals (m²/s²).
+    rss: f64,
+    /// The normal matrix AᵀA.
+    ata: Matrix3<f64>,
+}
+
+fn solve(
+    p: &Platform,
+    n: usize,
+    w: &[[f64; 2]; MAX_WHEELS],
+    legs: &[f64; MAX_WHEELS],
+    leg_rates: &[f64; MAX_WHEELS],
+) -> Option<Solution> {
     let mut ata = Matrix3::<f64>::zeros();
     let mut atb = Vector3::<f64>::zeros();
     for (i, wc) in p.wheels.iter().enumerate().take(n) {
@@ -89,14 +129,35 @@ pub fn twist_from_wheels(
         let ey = x[1] + x[2] * l * ca + leg_rates[i] * sa - w[i][1];
         sq += ex * ex + ey * ey;
     }
-    Some((
-        Twist {
+    Some(Solution {
+        twist: Twist {
             vx: x[0],
             vy: x[1],
             omega: x[2],
         },
-        (sq / n.max(1) as f64).sqrt(),
-    ))
+        rms: (sq / n.max(1) as f64).sqrt(),
+        rss: sq,
+        ata,
+    })
+}
+
+/// Resolution of the encoders the odometry reads (one step of the transmitted value).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EncoderResolution {
+    /// Wheel speed step (rad/s).
+    pub wheel_speed: f64,
+    /// Steering angle step (rad).
+    pub steer_angle: f64,
+}
+
+impl Default for EncoderResolution {
+    /// The native protocol's steps: 0.001 rad/s wheel speed, 1e-4 rad steering angle.
+    fn default() -> Self {
+        Self {
+            wheel_speed: 1e-3,
+            steer_angle: 1e-4,
+        }
+    }
 }
 
 /// How readings relate to the motion between them (see the module docs).
@@ -115,6 +176,8 @@ pub struct Odometry {
     pose: Pose,
     sampling: Sampling,
     prev: Option<Twist>,
+    resolution: EncoderResolution,
+    pose_cov: Matrix3<f64>,
 }
 
 impl Odometry {
@@ -129,7 +192,19 @@ impl Odometry {
             pose,
             sampling,
             prev: None,
+            resolution: EncoderResolution::default(),
+            pose_cov: Matrix3::zeros(),
         }
+    }
+
+    /// Sets the encoders' resolution (the floor of the twist covariance).
+    pub fn set_resolution(&mut self, r: EncoderResolution) {
+        self.resolution = r;
+    }
+
+    /// The pose covariance accumulated so far.
+    pub fn pose_covariance(&self) -> [[f64; 3]; 3] {
+        to_array(&self.pose_cov)
     }
 
     /// Current pose estimate.
@@ -137,10 +212,11 @@ impl Odometry {
         self.pose
     }
 
-    /// Resets the estimate to `pose`.
+    /// Resets the estimate to `pose` (known exactly: the covariance restarts at zero).
     pub fn set_pose(&mut self, pose: Pose) {
         self.pose = pose;
         self.prev = None;
+        self.pose_cov = Matrix3::zeros();
     }
 
     /// Integrates one cycle of measurements taken `dt` seconds after the previous ones.
@@ -170,18 +246,35 @@ impl Odometry {
                 && rates[i].is_finite();
         }
         let solved = if ok {
-            twist_from_wheels(p, n, &w, &legs, &rates)
+            solve(p, n, &w, &legs, &rates)
         } else {
             None
         };
-        let Some((tw, residual)) = solved else {
+        let Some(sol) = solved else {
             return OdometryOutput {
                 pose: self.pose,
                 twist_body: Twist::default(),
                 twist_world: Twist::default(),
                 residual: f64::INFINITY,
+                pose_covariance: to_array(&self.pose_cov),
+                twist_covariance: [[f64::INFINITY; 3]; 3],
             };
         };
+        let (tw, residual) = (sol.twist, sol.rms);
+        // Twist covariance σ² (AᵀA)⁻¹ (module docs, "Uncertainty").
+        let mut umax = 0.0f64;
+        for wi in w.iter().take(n) {
+            umax = umax.max(wi[0].hypot(wi[1]));
+        }
+        let q = self.resolution;
+        let enc = (p.wheel_radius * q.wheel_speed).powi(2) / 12.0 + (umax * q.steer_angle).powi(2) / 12.0;
+        let dof = (2 * n).saturating_sub(3).max(1) as f64;
+        let sigma2 = (sol.rss / dof).max(enc);
+        let twist_cov = sol
+            .ata
+            .try_inverse()
+            .map(|m| m * sigma2)
+            .unwrap_or_else(|| Matrix3::from_diagonal_element(f64::INFINITY));
         let step = match (self.sampling, self.prev) {
             (Sampling::Continuous, Some(prev)) => Twist {
                 vx: 0.5 * (prev.vx + tw.vx),
@@ -191,9 +284,20 @@ impl Odometry {
             _ => tw,
         };
         self.prev = Some(tw);
+        let before = self.pose;
         self.pose = se2_integrate(self.pose, &step, dtc);
+        // Propagation: P ← F P Fᵀ + G Σ_v Gᵀ · (τ_c/dt), with F = ∂pose⁺/∂pose and
+        // G = ∂pose⁺/∂v (module docs).
+        let (dx, dy) = (self.pose.x - before.x, self.pose.y - before.y);
+        let f = Matrix3::new(1.0, 0.0, -dy, 0.0, 1.0, dx, 0.0, 0.0, 1.0);
+        let (s, c) = (before.theta + 0.5 * step.omega * dtc).sin_cos();
+        let g = Matrix3::new(c * dtc, -s * dtc, 0.0, s * dtc, c * dtc, 0.0, 0.0, 0.0, dtc);
+        let corr = (CORRELATION_TIME / dtc).max(1.0);
+        self.pose_cov = f * self.pose_cov * f.transpose() + g * twist_cov * g.transpose() * corr;
         let vw = body_to_world(self.pose.theta, [tw.vx, tw.vy]);
         OdometryOutput {
+            pose_covariance: to_array(&self.pose_cov),
+            twist_covariance: to_array(&twist_cov),
             pose: self.pose,
             twist_body: tw,
             twist_world: Twist {
@@ -204,6 +308,22 @@ impl Odometry {
             residual,
         }
     }
+}
+
+/// Time over which consecutive twist errors are correlated (s): the drives' velocity loops
+/// (first-order, ≈ 20 ms) and the encoder latency make an error persist for a few cycles, so
+/// integrating them as independent per cycle would understate the pose uncertainty by
+/// √(τ_c/dt) (module docs, "Uncertainty").
+pub const CORRELATION_TIME: f64 = 0.02;
+
+fn to_array(m: &Matrix3<f64>) -> [[f64; 3]; 3] {
+    let mut a = [[0.0; 3]; 3];
+    for (r, row) in a.iter_mut().enumerate() {
+        for (c, v) in row.iter_mut().enumerate() {
+            *v = m[(r, c)];
+        }
+    }
+    a
 }
 
 #[cfg(test)]

@@ -134,6 +134,35 @@ pub struct Platform {
     /// "cia402"`. Absent: [`Cia402Config::for_wheels`] for the platform's wheel count.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cia402: Option<Cia402Config>,
+    /// The base service's command port (`[service]`): command timeout and sanity bounds.
+    #[serde(default)]
+    pub service: Service,
+}
+
+/// The base service's command port settings (`[service]` in the platform file; every field
+/// has a default).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Service {
+    /// A live command holds for this long (s); then the platform comes to a controlled stop,
+    /// steering held, until the next valid command. Default 0.5 s.
+    pub command_timeout: f64,
+    /// Sanity bound on |vx| and |vy| of a command (m/s): beyond it a command is refused as a
+    /// sender's bug (below it, a command beyond the actuator limits is slowed down, not
+    /// refused). Default 10 m/s.
+    pub max_linear_command: f64,
+    /// Sanity bound on |ω| of a command (rad/s). Default 10 rad/s.
+    pub max_angular_command: f64,
+}
+
+impl Default for Service {
+    fn default() -> Self {
+        Self {
+            command_timeout: 0.5,
+            max_linear_command: 10.0,
+            max_angular_command: 10.0,
+        }
+    }
 }
 
 /// The protocol profile the wheel modules speak.
@@ -219,6 +248,7 @@ impl Platform {
             },
             protocol: Protocol::Native,
             cia402: None,
+            service: Service::default(),
         }
     }
 
@@ -378,6 +408,20 @@ impl Platform {
         if self.protocol == Protocol::Cia402 || self.cia402.is_some() {
             self.validate_cia402()?;
         }
+        let sv = &self.service;
+        pos("service.command_timeout", sv.command_timeout)?;
+        if sv.command_timeout < 2.0 / self.cycle_hz || sv.command_timeout > 60.0 {
+            return Err(invalid(
+                "service.command_timeout",
+                sv.command_timeout,
+                format!(
+                    "must lie between two control cycles ({:.4} s) and 60 s",
+                    2.0 / self.cycle_hz
+                ),
+            ));
+        }
+        pos("service.max_linear_command", sv.max_linear_command)?;
+        pos("service.max_angular_command", sv.max_angular_command)?;
         let g = &self.gains;
         pos("gains.dfl_kp", g.dfl_kp)?;
         pos("gains.dfl_kd", g.dfl_kd)?;

@@ -195,6 +195,9 @@ pub struct CommandStats {
     pub rejected: u64,
     /// Times the command timeout expired while a non-zero command was held.
     pub timeouts: u64,
+    /// Valid commands not followed because the platform was not following commands
+    /// (stopped, in fault or not yet armed: re-arm first).
+    pub ignored: u64,
 }
 
 /// What the shaper is doing with the live command.

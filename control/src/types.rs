@@ -105,6 +105,25 @@ pub struct ReferenceSample {
     pub ddz: ZVec,
     /// z⃛*(t) (jerk), for controllers that differentiate the feedforward once more.
     pub dddz: ZVec,
+    /// Steering reference for wheels whose reference contact speed is below
+    /// [`crate::limits::HOLD_SPEED`] (`valid = false`: the source gives none, and the
+    /// controllers steer such wheels as they always did).
+    pub steer: SteerReference,
+}
+
+/// The steering angle each wheel should hold (or steer to, at the given rate) while its
+/// reference contact speed is too small to steer by its direction of travel: a wheel the
+/// ICR rests on, a platform at rest, the wheels turning in place before rolling
+/// (align-first). Sources that know the geometry of the motion (the live-command shaper,
+/// time-scaled trajectories) fill it; the controllers follow it for slow wheels.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SteerReference {
+    /// Whether the source filled it.
+    pub valid: bool,
+    /// Steering angle per wheel (rad).
+    pub angle: [f64; MAX_WHEELS],
+    /// Steering rate per wheel (rad/s): non-zero while aligning.
+    pub rate: [f64; MAX_WHEELS],
 }
 
 impl ReferenceSample {

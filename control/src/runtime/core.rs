@@ -2,21 +2,30 @@
 
 use super::{ControllerKind, RuntimeConfig, RuntimeError};
 use crate::avoidance::Avoidance;
+use crate::command::{check_legs, check_motion, Rejection};
 use crate::dfl::{alignment_command, ControlInput, DflController, TrackingController};
 use crate::kinematic::KinematicController;
+use crate::limits::guard_command;
 use crate::link::{Link, Update, WheelFault};
 use crate::model::wheel_positions;
-use crate::odometry::Odometry;
+use crate::odometry::{EncoderResolution, Odometry};
 use crate::platform::Platform;
+use crate::ports::{
+    BaseState, CommandEvent, CommandKind, CommandStats, JointState, Limiting, ModuleDiagnostics,
+    OdometryState, ShapingState,
+};
 use crate::record::{AvoidanceRecord, CycleRecord, FrameRecord};
+use crate::shaper::Shaper;
 use crate::supervisor::FaultReason;
 use crate::supervisor::{
     command_at_rest, stop_command, Mode, Supervisor, SupervisorInput, SupervisorState,
 };
 use crate::trajectory::Trajectory;
-use crate::types::{Command, Measurement, ReferenceSample, MAX_WHEELS};
+use crate::types::{Command, Measurement, ReferenceSample, Twist, MAX_WHEELS};
+use rollbase_driver::busload::frame_bits;
 use rollbase_driver::canopen::config::Role;
-use rollbase_driver::codec::{Setpoint, SetpointFlags};
+use rollbase_driver::canopen::master::DeviceFault;
+use rollbase_driver::codec::{Setpoint, SetpointFlags, FAULT_WATCHDOG};
 use rollbase_driver::frame::{CanFrame, FrameBuf};
 
 /// Checks, before anything starts, that the reference stays inside the platform's wheel
@@ -110,7 +119,53 @@ struct WheelFeedback {
 /// Cycles after [`CycleCore::arm`] whose SETPOINTs carry `fault_reset`.
 pub const FAULT_RESET_CYCLES: u32 = 3;
 
-/// The cycle minus IO and clocks.
+/// Where the reference comes from.
+enum Source {
+    /// A pre-planned trajectory, from its start when tracking begins.
+    Trajectory(TrajectorySource),
+    /// Live motion commands through the shaper (the base service).
+    Live(Box<LiveSource>),
+}
+
+struct TrajectorySource {
+    traj: Box<dyn Trajectory>,
+    /// Cycle tracking began in (the trajectory's clock starts there).
+    track_start_cycle: Option<u64>,
+    /// The kinematic controller finishes the run after the DFL terminated early.
+    terminal_active: bool,
+}
+
+struct LiveSource {
+    shaper: Shaper,
+    stats: CommandStats,
+    /// Receive time of the last valid command (s).
+    last_valid: f64,
+    /// The command held now is not zero (a timeout of it counts).
+    holding_motion: bool,
+    /// A stop was asked for: the platform stops and holds until re-armed.
+    stop_pending: bool,
+    /// The run ends once the platform is at rest (shutdown, or the end of the stream).
+    exit: bool,
+    /// The command stream ended.
+    end_of_stream: bool,
+    /// The DFL (not the kinematic controller) tracks this cycle.
+    dfl_active: bool,
+    last_rejection: Option<Rejection>,
+}
+
+/// Per-wheel diagnostics kept by the core.
+#[derive(Clone, Copy, Debug, Default)]
+struct WheelDiag {
+    counters: ModuleDiagnostics,
+    /// The wheel was in a communication-loss fault last cycle (edge detection).
+    in_watchdog: bool,
+    /// Last steering-stream sequence number seen (for loss counting).
+    last_seq: Option<u8>,
+}
+
+/// The cycle minus IO and clocks: decode → odometry → reference (trajectory or shaper) →
+/// avoidance → controller → supervisor → output guard → encode (see the `runtime` module
+/// docs). Built once; allocates nothing per cycle.
 pub struct CycleCore {
     fault_reset_cycles: u32,
     platform: Platform,
@@ -128,16 +183,14 @@ pub struct CycleCore {
     odom: Odometry,
     sup: Supervisor,
     controller: Box<dyn TrackingController + Send>,
-    /// Takes over from the DFL when it terminates before the trajectory's end (it cannot
-    /// pass through rest, seed 000 Sect. IV): the kinematic controller stops at rest.
-    terminal: KinematicController,
-    terminal_active: bool,
+    /// The kinematic controller: finishes trajectories after the DFL terminated early (it
+    /// cannot pass through rest, seed 000 Sect. IV), and tracks live commands near rest.
+    kinematic: KinematicController,
     avoidance: Option<Avoidance>,
-    trajectory: Box<dyn Trajectory>,
+    source: Source,
     fb: [WheelFeedback; MAX_WHEELS],
     cycle: u64,
     last_cmd: Command,
-    track_start_cycle: Option<u64>,
     record: CycleRecord,
     stop_requested: bool,
     bus_error: bool,
@@ -146,10 +199,24 @@ pub struct CycleCore {
     sync_time: f64,
     rejected_this_cycle: u32,
     wheel_xy: [[f64; 2]; MAX_WHEELS],
+    diag: [WheelDiag; MAX_WHEELS],
+    wheel_angle: [f64; MAX_WHEELS],
+    prev_wheel_speed: [f64; MAX_WHEELS],
+    /// Frame bits of each of the last second's cycles (ring) and their sum.
+    bus_bits: Vec<u32>,
+    bus_bits_at: usize,
+    bus_bits_sum: u64,
+    bits_this_cycle: u32,
+    state: BaseState,
 }
 
+/// Contact speed (m/s) from which the DFL takes over from the kinematic controller when
+/// following live commands; it hands back below [`crate::dfl::EPSILON`] (hysteresis).
+pub const DFL_ENTRY_SPEED: f64 = 2.0 * crate::dfl::EPSILON;
+
 impl CycleCore {
-    /// Builds the core; allocates everything it will ever need.
+    /// Builds the core following a pre-planned trajectory; allocates everything it will
+    /// ever need.
     pub fn new(
         platform: Platform,
         trajectory: Box<dyn Trajectory>,
@@ -164,6 +231,56 @@ impl CycleCore {
             });
         }
         check_feasible(&platform, trajectory.as_ref())?;
+        let r0 = trajectory.sample(0.0);
+        let mut legs = [0.0; MAX_WHEELS];
+        legs[..n].copy_from_slice(&r0.z.as_slice()[3..3 + n]);
+        let source = Source::Trajectory(TrajectorySource {
+            traj: trajectory,
+            track_start_cycle: None,
+            terminal_active: false,
+        });
+        Ok(Self::build(platform, cfg, source, r0.pose(), &legs[..n]))
+    }
+
+    /// Builds the core of the base service: it follows live motion commands
+    /// ([`CycleCore::command`]) through the shaper ([`crate::shaper`]), from wherever the
+    /// platform is when it is armed. Odometry starts at the origin of the odometry frame.
+    pub fn new_live(platform: Platform, cfg: RuntimeConfig) -> Result<Self, RuntimeError> {
+        platform.validate()?;
+        let n = platform.n();
+        let mut legs = [0.0; MAX_WHEELS];
+        for (l, w) in legs.iter_mut().zip(&platform.wheels) {
+            *l = w.lambda_nominal;
+        }
+        let shaper = Shaper::new(&platform, cfg.shaper);
+        let source = Source::Live(Box::new(LiveSource {
+            shaper,
+            stats: CommandStats::default(),
+            last_valid: 0.0,
+            holding_motion: false,
+            stop_pending: false,
+            exit: false,
+            end_of_stream: false,
+            dfl_active: false,
+            last_rejection: None,
+        }));
+        Ok(Self::build(
+            platform,
+            cfg,
+            source,
+            crate::types::Pose::default(),
+            &legs[..n],
+        ))
+    }
+
+    fn build(
+        platform: Platform,
+        cfg: RuntimeConfig,
+        source: Source,
+        start: crate::types::Pose,
+        legs: &[f64],
+    ) -> Self {
+        let n = platform.n();
         let link = Link::new(&platform, cfg.counter_policy);
         let mut nodes = [0u8; MAX_WHEELS];
         let mut steer_nodes = [0u8; MAX_WHEELS];
@@ -173,8 +290,6 @@ impl CycleCore {
             steer_nodes[i] = link.stream_node(i, Role::Steer);
             leg_nodes[i] = link.stream_node(i, Role::Leg);
         }
-        let r0 = trajectory.sample(0.0);
-        let start = r0.pose();
         let controller: Box<dyn TrackingController + Send> = match cfg.controller {
             ControllerKind::Dfl => Box::new(DflController::new(&platform)),
             ControllerKind::Kinematic => Box::new(KinematicController::new(&platform)),
@@ -184,10 +299,21 @@ impl CycleCore {
         sup.set_stream_nodes(steer_nodes, leg_nodes);
         let mut record = CycleRecord::new(0, 0.0, n);
         record.nodes = nodes;
-        let mut legs = [0.0; MAX_WHEELS];
-        legs[..n].copy_from_slice(&r0.z.as_slice()[3..3 + n]);
-        let wheel_xy = wheel_positions(&platform, &legs[..n]);
-        Ok(Self {
+        let wheel_xy = wheel_positions(&platform, legs);
+        let mut odom = Odometry::new(start);
+        odom.set_resolution(encoder_resolution(&platform));
+        let window = platform.cycle_hz.round().clamp(1.0, 10_000.0) as usize;
+        let mut diag = [WheelDiag::default(); MAX_WHEELS];
+        for (d, node) in diag.iter_mut().zip(nodes) {
+            d.counters.node = node;
+            d.counters.state = 255;
+        }
+        let mut state = BaseState {
+            n,
+            ..BaseState::default()
+        };
+        state.odometry.pose = start;
+        Self {
             fault_reset_cycles: 0,
             n,
             nodes,
@@ -196,17 +322,15 @@ impl CycleCore {
             armed_cycle: 0,
             now: 0.0,
             setpoints: [Setpoint::default(); MAX_WHEELS],
-            odom: Odometry::new(start),
+            odom,
             sup,
             controller,
-            terminal: KinematicController::new(&platform),
-            terminal_active: false,
+            kinematic: KinematicController::new(&platform),
             avoidance,
-            trajectory,
+            source,
             fb: [WheelFeedback::default(); MAX_WHEELS],
             cycle: 0,
             last_cmd: Command::zero(n),
-            track_start_cycle: None,
             record,
             stop_requested: false,
             bus_error: false,
@@ -215,9 +339,17 @@ impl CycleCore {
             sync_time: 0.0,
             rejected_this_cycle: 0,
             wheel_xy,
+            diag,
+            wheel_angle: [0.0; MAX_WHEELS],
+            prev_wheel_speed: [0.0; MAX_WHEELS],
+            bus_bits: vec![0; window],
+            bus_bits_at: 0,
+            bus_bits_sum: 0,
+            bits_this_cycle: 0,
+            state,
             platform,
             cfg,
-        })
+        }
     }
 
     /// The runtime options the core was built with.
@@ -266,6 +398,38 @@ impl CycleCore {
         &self.wheel_xy[..self.n]
     }
 
+    /// The state port's value of the last finished cycle (odometry, joints, supervisor,
+    /// diagnostics, command counters, shaping).
+    pub fn base_state(&self) -> &BaseState {
+        &self.state
+    }
+
+    /// Mutable access to the state (the IO layer adds log time and deadline misses).
+    pub fn base_state_mut(&mut self) -> &mut BaseState {
+        &mut self.state
+    }
+
+    /// True when the core follows live commands (built with [`CycleCore::new_live`]).
+    pub fn is_live(&self) -> bool {
+        matches!(self.source, Source::Live(_))
+    }
+
+    /// The last command the command port rejected, and why.
+    pub fn last_rejection(&self) -> Option<Rejection> {
+        match &self.source {
+            Source::Live(l) => l.last_rejection,
+            Source::Trajectory(_) => None,
+        }
+    }
+
+    /// The duration of the trajectory being followed (infinite for live commands).
+    pub fn reference_duration(&self) -> f64 {
+        match &self.source {
+            Source::Trajectory(s) => s.traj.duration(),
+            Source::Live(_) => f64::INFINITY,
+        }
+    }
+
     /// Arms the platform (Idle/Stopped/Fault → Aligning). Re-arming after a fault clears it.
     ///
     /// Re-arming is the operator's "reconnect": the SETPOINTs of the next
@@ -290,7 +454,13 @@ impl CycleCore {
         self.stop_requested = false;
         self.bus_error = false;
         self.done_cycles = 0;
-        self.track_start_cycle = None;
+        match &mut self.source {
+            Source::Trajectory(s) => s.track_start_cycle = None,
+            Source::Live(l) => {
+                l.stop_pending = false;
+                l.shaper.halt();
+            }
+        }
         if self.link.ready() {
             self.arm_now()
         } else {
@@ -311,9 +481,14 @@ impl CycleCore {
         self.sup.arm()
     }
 
-    /// Operator stop (Ctrl-C): a controlled stop, then the run ends.
+    /// Operator stop (Ctrl-C, SIGTERM): a controlled stop, then the run ends.
     pub fn request_stop(&mut self) {
         self.stop_requested = true;
+        if let Source::Live(l) = &mut self.source {
+            l.stop_pending = true;
+            l.exit = true;
+            l.shaper.halt();
+        }
     }
 
     /// The bus reported an error (interface down, bus-off): fault and controlled stop.
@@ -322,9 +497,89 @@ impl CycleCore {
     }
 
     /// True once the platform has been at rest in Stopped, Fault or Idle (after a stop
-    /// request) for [`RuntimeConfig::linger_cycles`] cycles.
+    /// request) for [`RuntimeConfig::linger_cycles`] cycles. Following live commands, only
+    /// after a shutdown or the end of the command stream.
     pub fn done(&self) -> bool {
         self.done_cycles >= self.cfg.linger_cycles
+    }
+
+    /// The command port: takes one event from a command source, received at `ev.t` (s, on
+    /// the run's time base). Motion commands are checked ([`crate::command`]) and rejected
+    /// ones are counted and never reach the wheels; valid ones go to the shaper while the
+    /// platform follows commands (Tracking), and are counted as ignored otherwise (stopped or
+    /// in fault: re-arm first). With a trajectory source only `Shutdown` (and `Stop`) act: a
+    /// controlled stop.
+    pub fn command(&mut self, ev: CommandEvent) {
+        let tracking = self.sup.state() == SupervisorState::Tracking;
+        let rearm = {
+            let Source::Live(l) = &mut self.source else {
+                if matches!(ev.kind, CommandKind::Shutdown | CommandKind::Stop) {
+                    self.request_stop();
+                }
+                return;
+            };
+            let p = &self.platform;
+            let following = tracking && !l.stop_pending;
+            let accept = |l: &mut LiveSource, r: Result<(), Rejection>| match r {
+                Err(e) => {
+                    l.stats.rejected += 1;
+                    l.last_rejection = Some(e);
+                    false
+                }
+                Ok(()) if !following => {
+                    l.stats.ignored += 1;
+                    false
+                }
+                Ok(()) => {
+                    l.stats.accepted += 1;
+                    l.last_valid = ev.t;
+                    true
+                }
+            };
+            match ev.kind {
+                CommandKind::Motion(m) => match check_motion(p, &m) {
+                    Ok(m) => {
+                        if accept(l, Ok(())) {
+                            l.holding_motion = m.twist != Twist::default() || m.legs.is_some();
+                            l.shaper
+                                .command(m.twist, m.legs.as_ref().map(|x| x.as_slice()));
+                        }
+                    }
+                    Err(e) => {
+                        accept(l, Err(e));
+                    }
+                },
+                CommandKind::Legs(t) => match check_legs(p, &t) {
+                    Ok(t) => {
+                        if accept(l, Ok(())) {
+                            l.holding_motion = true;
+                            l.shaper.command_legs(t.as_slice());
+                        }
+                    }
+                    Err(e) => {
+                        accept(l, Err(e));
+                    }
+                },
+                CommandKind::Stop => {
+                    l.stop_pending = true;
+                    l.shaper.halt();
+                }
+                CommandKind::Shutdown => {
+                    l.stop_pending = true;
+                    l.exit = true;
+                    l.shaper.halt();
+                }
+                CommandKind::EndOfStream => l.end_of_stream = true,
+                CommandKind::Rearm => {}
+            }
+            matches!(ev.kind, CommandKind::Rearm)
+        };
+        if rearm {
+            self.arm();
+        }
+        if matches!(ev.kind, CommandKind::Shutdown) {
+            self.stop_requested = true;
+        }
     }
 
     /// Starts the cycle at time `t` (s): writes the frames to send now into `out` (cleared
@@ -335,6 +590,7 @@ impl CycleCore {
         rec.nodes = self.nodes;
         self.record = rec;
         self.rejected_this_cycle = 0;
+        self.bits_this_cycle = 0;
         self.now = t;
         out.clear();
         self.link.start_cycle(self.cycle, t, out);
@@ -347,6 +603,7 @@ impl CycleCore {
         if f.id() == 0x080 {
             self.sync_time = t;
         }
+        self.bits_this_cycle = self.bits_this_cycle.saturating_add(frame_bits(f.len()));
         let mut data = [0u8; 8];
         data[..f.len()].copy_from_slice(f.data());
         self.record.push_tx(FrameRecord {
@@ -358,17 +615,32 @@ impl CycleCore {
         });
     }
 
+    /// The wheel whose module (native) or device (CiA 402) uses `node`.
+    fn wheel_of_node(&self, node: u8) -> Option<usize> {
+        (0..self.n).find(|&i| {
+            [Role::Steer, Role::Drive, Role::Leg]
+                .iter()
+                .any(|&r| self.link.stream_node(i, r) == node)
+        })
+    }
+
     /// Takes one received frame (its timestamp in s on the run's time base).
     pub fn on_frame(&mut self, frame: &CanFrame, t: f64) {
         let mut data = [0u8; 8];
         data[..frame.len()].copy_from_slice(frame.data());
         self.record.timing.frames_in += 1;
+        self.bits_this_cycle = self.bits_this_cycle.saturating_add(frame_bits(frame.len()));
         self.now = self.now.max(t);
         let result = self.link.on_frame(frame, t);
         let error = match &result {
             Ok(_) => None,
             Err(kind) => {
                 self.rejected_this_cycle += 1;
+                // Standard-frame ids carry the node in their low 7 bits (native and CANopen).
+                let node = (frame.id() & 0x7F) as u8;
+                if let Some(w) = self.wheel_of_node(node) {
+                    self.diag[w].counters.rejected += 1;
+                }
                 Some(*kind)
             }
         };
@@ -390,6 +662,15 @@ impl CycleCore {
                     rate,
                     seq,
                 } if wheel < self.n => {
+                    let d = &mut self.diag[wheel];
+                    if let Some(prev) = d.last_seq {
+                        let gap = seq.wrapping_sub(prev).wrapping_sub(1) & 0x0F;
+                        d.counters.lost += u64::from(gap);
+                    }
+                    d.last_seq = Some(seq);
+                    if !on_time {
+                        d.counters.late += 1;
+                    }
                     let fb = &mut self.fb[wheel];
                     if let (Some(old), Some(c)) = (fb.steer, fb.steer_at.cycle) {
                         fb.prev_steer = Some((old, fb.steer_seq, c, fb.steer_on_time));
@@ -483,50 +764,185 @@ impl CycleCore {
         (m, age, alive, stale_node, oldest)
     }
 
-    fn reference_time(&self) -> f64 {
-        match self.track_start_cycle {
-            Some(c) => (self.cycle - c) as f64 * self.platform.dt(),
-            None => 0.0,
-        }
-    }
-
     /// Runs the control step at time `t` (s) and writes the setpoint frames into `out`
     /// (cleared first; with the CiA 402 profile SDO requests that became due follow);
     /// returns how many were written. The cycle's record is then available from
-    /// [`CycleCore::record`].
+    /// [`CycleCore::record`], its state from [`CycleCore::base_state`].
     pub fn finish_cycle(&mut self, t: f64, out: &mut FrameBuf) -> usize {
         let dt = self.platform.dt();
         self.now = self.now.max(t);
-        if self.arm_pending {
-            if let Some((wheel, node, role, fault)) = self.link.boot_failure() {
-                self.arm_pending = false;
-                self.sup.fail(FaultReason::DeviceFault {
-                    wheel,
-                    node,
-                    role,
-                    fault,
-                });
-            } else if self.link.ready() {
-                self.arm_now();
-            }
-        }
+        self.arm_when_ready();
+        // Decode.
         let (meas, age, alive, stale_node, oldest_fb) = self.measurement();
         for (i, w) in meas.wheels[..self.n].iter().enumerate() {
-            self.wheel_xy[i] = {
-                let a = self.platform.wheels[i].alpha;
-                [w.leg * a.cos(), w.leg * a.sin()]
-            };
+            let a = self.platform.wheels[i].alpha;
+            self.wheel_xy[i] = [w.leg * a.cos(), w.leg * a.sin()];
         }
+        // Odometry.
         let odo = self.odom.update(&self.platform, &meas, dt);
+        // Reference: the trajectory or the shaper, then avoidance.
+        self.live_tick(t);
+        let nominal = self.reference(&meas, &odo);
+        let (reference, av) = self.avoid(&nominal, dt);
+        // Controller (only while tracking) before the supervisor so it can see the result.
+        let (mut sup_in, mut track_cmd) = self.supervisor_input(
+            &meas,
+            &odo,
+            &nominal,
+            age,
+            alive,
+            stale_node,
+        );
+        if self.sup.state() == SupervisorState::Tracking {
+            track_cmd = self.control(&meas, &odo, &reference, &mut sup_in, dt);
+        }
+        // Supervisor.
+        let at_rest = command_at_rest(&self.last_cmd, self.sup.config().rest_speed);
+        let state_before = self.sup.state();
+        let mode = self.sup.step(&self.platform, &sup_in, at_rest);
+        if self.sup.state() == SupervisorState::Tracking
+            && state_before != SupervisorState::Tracking
+        {
+            track_cmd = self.start_tracking(&meas, &odo);
+        }
+        // Command: the supervisor's mode, then the output guard.
+        let (cmd, enable, brake, mode_name) = self.command_for(mode, &meas, &nominal, track_cmd);
+        // Encode.
+        let k = self.encode(t, &cmd, enable, brake, out);
+        self.last_cmd = cmd;
+        let settled = matches!(
+            self.sup.state(),
+            SupervisorState::Stopped | SupervisorState::Fault
+        ) && command_at_rest(&cmd, self.sup.config().rest_speed);
+        let idle_stop = self.sup.state() == SupervisorState::Idle && self.stop_requested;
+        if (settled || idle_stop) && self.may_end() {
+            self.done_cycles = self.done_cycles.saturating_add(1);
+        } else {
+            self.done_cycles = 0;
+        }
+        // Record and state port.
+        let r = &mut self.record;
+        r.t = r.t.min(t);
+        r.measurement = meas;
+        r.feedback_age = age;
+        for i in 0..self.n {
+            r.module_state[i] = self.link.wheel_state(i).map_or(255, |s| s.to_raw());
+        }
+        r.nominal = nominal;
+        r.reference = reference;
+        r.command = cmd;
+        r.mode = mode_name;
+        r.enable = enable;
+        r.pose = odo.pose;
+        r.twist_body = odo.twist_body;
+        r.slip_residual = odo.residual;
+        r.avoidance = av;
+        r.wheel_xy = self.wheel_xy;
+        r.state = self.sup.state();
+        r.reason = self.sup.reason();
+        r.timing.frames_out = r.n_tx_total;
+        r.timing.rejected = self.rejected_this_cycle;
+        r.timing.feedback_age_us = if oldest_fb.is_finite() {
+            ((t - oldest_fb) * 1e6).max(0.0)
+        } else {
+            f64::NAN
+        };
+        self.publish_state(t, &meas, &odo, alive, dt);
+        self.cycle += 1;
+        k
+    }
 
-        // Reference: held at the start until tracking begins, then runs from 0.
+    /// CiA 402: arm once every device runs (or fault naming the one that cannot boot).
+    fn arm_when_ready(&mut self) {
+        if !self.arm_pending {
+            return;
+        }
+        if let Some((wheel, node, role, fault)) = self.link.boot_failure() {
+            self.arm_pending = false;
+            self.sup.fail(FaultReason::DeviceFault {
+                wheel,
+                node,
+                role,
+                fault,
+            });
+        } else if self.link.ready() {
+            self.arm_now();
+        }
+    }
+
+    /// Whether a settled platform may end the run: a trajectory run always; the base
+    /// service only after a shutdown or the end of its command stream.
+    fn may_end(&self) -> bool {
+        match &self.source {
+            Source::Trajectory(_) => true,
+            Source::Live(l) => l.exit,
+        }
+    }
+
+    /// Live commands: the command timeout, and the end of the stream.
+    fn live_tick(&mut self, t: f64) {
+        let tracking = self.sup.state() == SupervisorState::Tracking;
+        let Source::Live(l) = &mut self.source else {
+            return;
+        };
+        if tracking && !l.shaper.halted() && t - l.last_valid > self.platform.service.command_timeout
+        {
+            l.shaper.halt();
+            if l.holding_motion {
+                l.stats.timeouts += 1;
+            }
+            l.holding_motion = false;
+        }
+        if l.end_of_stream && (l.shaper.halted() || !tracking) && l.shaper.at_rest() && !l.exit {
+            l.exit = true;
+            l.stop_pending = true;
+            self.stop_requested = true;
+        }
+    }
+
+    fn reference_time(&self) -> f64 {
+        match &self.source {
+            Source::Trajectory(TrajectorySource {
+                track_start_cycle: Some(c),
+                ..
+            }) => (self.cycle - c) as f64 * self.platform.dt(),
+            _ => 0.0,
+        }
+    }
+
+    /// The nominal reference of this cycle: the trajectory at its clock (held at its start
+    /// until tracking begins), or the shaper's next sample while following live commands
+    /// (held at the measured state otherwise).
+    fn reference(
+        &mut self,
+        meas: &Measurement,
+        odo: &crate::odometry::OdometryOutput,
+    ) -> ReferenceSample {
         let t_ref = self.reference_time();
-        let nominal = self
-            .trajectory
-            .sample(t_ref.min(self.trajectory.duration()));
-        let (reference, av) = match (&mut self.avoidance, self.sup.state()) {
+        let tracking = self.sup.state() == SupervisorState::Tracking;
+        let n = self.n;
+        match &mut self.source {
+            Source::Trajectory(s) => s.traj.sample(t_ref.min(s.traj.duration())),
+            Source::Live(l) => {
+                if !tracking {
+                    let mut legs = [0.0; MAX_WHEELS];
+                    let mut steer = [0.0; MAX_WHEELS];
+                    for i in 0..n {
+                        legs[i] = meas.wheels[i].leg;
+                        steer[i] = meas.wheels[i].steer_angle;
+                    }
+                    l.shaper.reset(odo.pose, &legs[..n], &steer[..n]);
+                    return l.shaper.hold_sample();
+                }
+                l.shaper.step()
+            }
+        }
+    }
+
+    fn avoid(&mut self, nominal: &ReferenceSample, dt: f64) -> (ReferenceSample, AvoidanceRecord) {
+        match (&mut self.avoidance, self.sup.state()) {
             (Some(a), SupervisorState::Tracking) => {
-                let (r, s) = a.step(&self.platform, &nominal, dt);
+                let (r, s) = a.step(&self.platform, nominal, dt);
                 let mut d = [0.0; 3 + MAX_WHEELS];
                 d.copy_from_slice(s.deviation.as_slice());
                 (
@@ -541,17 +957,34 @@ impl CycleCore {
                     },
                 )
             }
-            _ => (nominal, icr_record(&nominal, &self.wheel_xy[..self.n])),
-        };
+            _ => (*nominal, icr_record(nominal, &self.wheel_xy[..self.n])),
+        }
+    }
 
-        let (align_cmd, align_err) = alignment_command(&self.platform, &meas, &nominal);
+    /// What the supervisor sees this cycle, apart from the controller's verdicts; also the
+    /// (zero) tracking command of a cycle that does not track.
+    fn supervisor_input(
+        &mut self,
+        meas: &Measurement,
+        odo: &crate::odometry::OdometryOutput,
+        nominal: &ReferenceSample,
+        age: [u32; MAX_WHEELS],
+        alive: [u32; MAX_WHEELS],
+        stale_node: [u8; MAX_WHEELS],
+    ) -> (SupervisorInput, Command) {
+        let dt = self.platform.dt();
+        let (_, align_err) = alignment_command(&self.platform, meas, nominal);
         // Alignment and the start check need every module's feedback at least once.
         let reported = self.fb[..self.n]
             .iter()
             .all(|f| f.steer.is_some() && f.drive.is_some() && f.leg.is_some());
         let start_legs = if reported {
-            let r0 = self.trajectory.sample(0.0);
-            let mut worst = (0usize, meas.wheels[0].leg, r0.z[3]);
+            let mut worst = (0usize, meas.wheels[0].leg, nominal.z[3]);
+            let r0 = match &self.source {
+                Source::Trajectory(s) => s.traj.sample(0.0),
+                // Live commands start wherever the platform is.
+                Source::Live(_) => *nominal,
+            };
             for i in 0..self.n {
                 let (m, e) = (meas.wheels[i].leg, r0.z[3 + i]);
                 if (m - e).abs() > (worst.1 - worst.2).abs() || !(m - e).is_finite() {
@@ -583,6 +1016,12 @@ impl CycleCore {
             }
             fb.steer_fresh = false;
         }
+        let stop_requested = match &self.source {
+            Source::Trajectory(_) => self.stop_requested,
+            // While following commands the shaper stops the platform (steering held) and the
+            // supervisor goes to Stopped once it is at rest; before that, the supervisor stops.
+            Source::Live(l) => l.stop_pending && self.sup.state() != SupervisorState::Tracking,
+        };
         let mut sup_in = SupervisorInput {
             steer_jump,
             feedback_age: alive,
@@ -592,7 +1031,7 @@ impl CycleCore {
             start_legs,
             bus_error: self.bus_error,
             slip_residual: odo.residual,
-            stop_requested: self.stop_requested,
+            stop_requested,
             ..Default::default()
         };
         for i in 0..self.n {
@@ -606,75 +1045,147 @@ impl CycleCore {
                 None => {}
             }
         }
+        (sup_in, Command::zero(self.n))
+    }
 
-        // Controller step (only while tracking) before the supervisor so it can see the result.
-        let tracking_before = self.sup.state() == SupervisorState::Tracking;
-        let mut track_cmd = Command::zero(self.n);
-        if tracking_before {
-            let input = ControlInput {
-                measured_twist: Some(odo.twist_world),
-                t: t_ref,
-                dt,
-                measurement: &meas,
-                pose: odo.pose,
-                reference: &reference,
-            };
-            let mut o = if self.terminal_active {
-                self.terminal.step(&self.platform, &input)
-            } else {
-                self.controller.step(&self.platform, &input)
-            };
-            if o.finished
-                && !self.terminal_active
-                && self.cfg.controller == ControllerKind::Dfl
-                && t_ref + dt < self.trajectory.duration()
-            {
-                // The DFL terminated (|v_W*| < ε) before the reference's end: the kinematic
-                // controller tracks the rest of the way and stops at rest.
-                self.terminal_active = true;
-                self.terminal.reset(&self.platform, &reference);
-                o = self.terminal.step(&self.platform, &input);
+    /// The tracking controller's step (Tracking only); sets the controller's verdicts in
+    /// `sup_in`.
+    fn control(
+        &mut self,
+        meas: &Measurement,
+        odo: &crate::odometry::OdometryOutput,
+        reference: &ReferenceSample,
+        sup_in: &mut SupervisorInput,
+        dt: f64,
+    ) -> Command {
+        let t_ref = self.reference_time();
+        let input = ControlInput {
+            measured_twist: Some(odo.twist_world),
+            t: t_ref,
+            dt,
+            measurement: meas,
+            pose: odo.pose,
+            reference,
+        };
+        let dfl = self.cfg.controller == ControllerKind::Dfl;
+        match &mut self.source {
+            Source::Trajectory(s) => {
+                let duration = s.traj.duration();
+                let mut o = if s.terminal_active {
+                    self.kinematic.step(&self.platform, &input)
+                } else {
+                    self.controller.step(&self.platform, &input)
+                };
+                if o.finished && !s.terminal_active && dfl && t_ref + dt < duration {
+                    // The DFL terminated (|v_W*| < ε) before the reference's end: the
+                    // kinematic controller tracks the rest of the way and stops at rest.
+                    s.terminal_active = true;
+                    self.kinematic.reset(&self.platform, reference);
+                    o = self.kinematic.step(&self.platform, &input);
+                }
+                // A DFL reports `singular` until the reference wheel moves faster than ε (it
+                // cannot leave rest on its own, seed 000 Sect. IV); that is waiting, not a
+                // fault. Singular after it has moved is singularity A: a fault.
+                if !o.singular {
+                    self.controller_moved = true;
+                }
+                sup_in.controller_singular =
+                    (o.singular && self.controller_moved) || !command_finite(&o.command);
+                sup_in.trajectory_done = (o.finished
+                    && (s.terminal_active || !dfl || t_ref + dt >= duration))
+                    || t_ref >= duration + 2.0;
+                o.command
             }
-            track_cmd = o.command;
-            // A DFL reports `singular` until the reference wheel moves faster than ε (it
-            // cannot leave rest on its own, seed 000 Sect. IV); that is waiting, not a fault.
-            // Singular after it has moved is singularity A: a fault.
-            if !o.singular {
-                self.controller_moved = true;
+            Source::Live(l) => {
+                // The DFL tracks while the reference moves; near rest (where it is singular,
+                // seed 000 Sect. IV) the kinematic controller holds and stops the platform.
+                let mut v_ref = 0.0f64;
+                for i in 0..self.n {
+                    let u = crate::limits::contact_kinematics(&self.platform, i, reference)[0];
+                    v_ref = v_ref.max(u[0].hypot(u[1]));
+                }
+                let entry = if l.dfl_active {
+                    crate::dfl::EPSILON
+                } else {
+                    DFL_ENTRY_SPEED
+                };
+                let want_dfl = dfl && v_ref >= entry;
+                if want_dfl && !l.dfl_active {
+                    self.controller.reset(&self.platform, reference);
+                }
+                if !want_dfl && l.dfl_active {
+                    self.kinematic.reset(&self.platform, reference);
+                }
+                l.dfl_active = want_dfl;
+                let mut o = if want_dfl {
+                    self.controller.step(&self.platform, &input)
+                } else {
+                    self.kinematic.step(&self.platform, &input)
+                };
+                if want_dfl && (o.finished || o.singular) {
+                    l.dfl_active = false;
+                    self.kinematic.reset(&self.platform, reference);
+                    o = self.kinematic.step(&self.platform, &input);
+                }
+                sup_in.controller_singular = !command_finite(&o.command);
+                sup_in.trajectory_done = l.stop_pending && l.shaper.at_rest();
+                o.command
             }
-            sup_in.controller_singular =
-                (o.singular && self.controller_moved) || !command_finite(&track_cmd);
-            sup_in.trajectory_done = (o.finished
-                && (self.terminal_active
-                    || self.cfg.controller != ControllerKind::Dfl
-                    || t_ref + dt >= self.trajectory.duration()))
-                || t_ref >= self.trajectory.duration() + 2.0;
         }
-        let at_rest = command_at_rest(&self.last_cmd, self.sup.config().rest_speed);
-        let state_before = self.sup.state();
-        let mode = self.sup.step(&self.platform, &sup_in, at_rest);
-        if self.sup.state() == SupervisorState::Tracking
-            && state_before != SupervisorState::Tracking
-        {
-            // Entering tracking: the reference clock starts now, the controller is initialised
-            // on the reference (perfect matching condition, seed 000 Sect. IV).
-            self.track_start_cycle = Some(self.cycle);
-            self.controller_moved = false;
-            self.terminal_active = false;
-            let r0 = self.trajectory.sample(0.0);
-            self.controller.reset(&self.platform, &r0);
-            let input = ControlInput {
-                measured_twist: Some(odo.twist_world),
-                t: 0.0,
-                dt,
-                measurement: &meas,
-                pose: odo.pose,
-                reference: &r0,
-            };
-            track_cmd = self.controller.step(&self.platform, &input).command;
+    }
+
+    /// Entering tracking: the reference clock starts now, the controller is initialised on
+    /// the reference (perfect matching condition, seed 000 Sect. IV). Returns this cycle's
+    /// tracking command.
+    fn start_tracking(
+        &mut self,
+        meas: &Measurement,
+        odo: &crate::odometry::OdometryOutput,
+    ) -> Command {
+        let dt = self.platform.dt();
+        self.controller_moved = false;
+        let cycle = self.cycle;
+        let r0 = match &mut self.source {
+            Source::Trajectory(s) => {
+                s.track_start_cycle = Some(cycle);
+                s.terminal_active = false;
+                s.traj.sample(0.0)
+            }
+            Source::Live(l) => {
+                l.dfl_active = false;
+                l.last_valid = self.now;
+                l.shaper.hold_sample()
+            }
+        };
+        self.controller.reset(&self.platform, &r0);
+        self.kinematic.reset(&self.platform, &r0);
+        let input = ControlInput {
+            measured_twist: Some(odo.twist_world),
+            t: 0.0,
+            dt,
+            measurement: meas,
+            pose: odo.pose,
+            reference: &r0,
+        };
+        match &self.source {
+            Source::Trajectory(_) => self.controller.step(&self.platform, &input).command,
+            Source::Live(_) => self.kinematic.step(&self.platform, &input).command,
         }
-        // The last cycle of a finished run disables the drives (enable = 0), so the modules go
-        // back to Ready instead of tripping their setpoint watchdog when the controller exits.
+    }
+
+    /// The command of the supervisor's mode; tracking and alignment commands pass the output
+    /// guard ([`crate::limits::guard_command`]): every wheel within its speed and
+    /// acceleration limits, the change scaled as a whole. A controlled stop of the supervisor
+    /// (faults, operator stop outside tracking) ramps the wheel speeds down at the wheel
+    /// acceleration limit and holds the steering at once.
+    fn command_for(
+        &mut self,
+        mode: Mode,
+        meas: &Measurement,
+        nominal: &ReferenceSample,
+        track_cmd: Command,
+    ) -> (Command, bool, bool, &'static str) {
+        let dt = self.platform.dt();
         let settling = matches!(
             self.sup.state(),
             SupervisorState::Stopped | SupervisorState::Fault
@@ -682,13 +1193,20 @@ impl CycleCore {
         // With synchronous RPDOs (CiA 402) a controlword acts at the next SYNC: the drives are
         // told to disable for as many cycles before the end as the link needs.
         let lead = self.link.disable_lead_cycles();
-        let last_cycle = settling && self.done_cycles + lead >= self.cfg.linger_cycles;
+        let last_cycle =
+            settling && self.may_end() && self.done_cycles + lead >= self.cfg.linger_cycles;
+        let guard = |c: Command, last: &Command| {
+            guard_command(&self.platform.limits, last, &c, dt).0
+        };
         let (cmd, enable, brake, mode_name) = match mode {
             Mode::Disabled => (Command::zero(self.n), false, false, "disabled"),
-            Mode::Align => (align_cmd, true, false, "align"),
+            Mode::Align => {
+                let (align_cmd, _) = alignment_command(&self.platform, meas, nominal);
+                (guard(align_cmd, &self.last_cmd), true, false, "align")
+            }
             Mode::Track => {
                 if command_finite(&track_cmd) {
-                    (track_cmd, true, false, "track")
+                    (guard(track_cmd, &self.last_cmd), true, false, "track")
                 } else {
                     (
                         stop_command(&self.platform, &self.last_cmd, dt),
@@ -707,12 +1225,22 @@ impl CycleCore {
             Mode::Hold => (Command::zero(self.n), true, true, "hold"),
         };
         let at_rest_now = command_at_rest(&cmd, self.sup.config().rest_speed);
-        let (enable, mode_name) = if last_cycle && at_rest_now {
-            (false, "disable")
+        if last_cycle && at_rest_now {
+            (cmd, false, brake, "disable")
         } else {
-            (enable, mode_name)
-        };
+            (cmd, enable, brake, mode_name)
+        }
+    }
 
+    /// Setpoints of this cycle into `out`; returns how many frames.
+    fn encode(
+        &mut self,
+        t: f64,
+        cmd: &Command,
+        enable: bool,
+        brake: bool,
+        out: &mut FrameBuf,
+    ) -> usize {
         // A re-arm asks the modules to clear latched faults (e.g. their setpoint watchdog
         // after the bus was gone) in the setpoints of the next few cycles.
         self.fault_reset_cycles = self.fault_reset_cycles.saturating_sub(1);
@@ -733,52 +1261,101 @@ impl CycleCore {
         let settled = matches!(
             self.sup.state(),
             SupervisorState::Stopped | SupervisorState::Fault
-        ) && at_rest_now;
+        ) && command_at_rest(cmd, self.sup.config().rest_speed);
         let idle_stop = self.sup.state() == SupervisorState::Idle && self.stop_requested;
         // The very last cycle of a finished run, drives disabled: hand the devices back.
-        if (settled || idle_stop) && self.done_cycles + 1 >= self.cfg.linger_cycles {
+        if (settled || idle_stop) && self.may_end() && self.done_cycles + 1 >= self.cfg.linger_cycles
+        {
             self.link.release(out);
         }
         let k = out.len();
         for &f in out.as_slice() {
             self.push_tx(t, &f);
         }
-        self.last_cmd = cmd;
-
-        if settled || idle_stop {
-            self.done_cycles = self.done_cycles.saturating_add(1);
-        } else {
-            self.done_cycles = 0;
-        }
-
-        let r = &mut self.record;
-        r.t = r.t.min(t);
-        r.measurement = meas;
-        r.feedback_age = age;
-        for i in 0..self.n {
-            r.module_state[i] = self.link.wheel_state(i).map_or(255, |s| s.to_raw());
-        }
-        r.nominal = nominal;
-        r.reference = reference;
-        r.command = cmd;
-        r.mode = mode_name;
-        r.enable = enable;
-        r.pose = odo.pose;
-        r.twist_body = odo.twist_body;
-        r.slip_residual = odo.residual;
-        r.avoidance = av;
-        r.wheel_xy = self.wheel_xy;
-        r.state = self.sup.state();
-        r.reason = self.sup.reason();
-        r.timing.frames_out = r.n_tx_total;
-        r.timing.rejected = self.rejected_this_cycle;
-        r.timing.feedback_age_us = if oldest_fb.is_finite() {
-            ((t - oldest_fb) * 1e6).max(0.0)
-        } else {
-            f64::NAN
-        };
-        self.cycle += 1;
         k
+    }
+
+    /// Fills the state port's value of this cycle.
+    fn publish_state(
+        &mut self,
+        t: f64,
+        meas: &Measurement,
+        odo: &crate::odometry::OdometryOutput,
+        alive: [u32; MAX_WHEELS],
+        dt: f64,
+    ) {
+        // Bus load over the last second.
+        let bits = self.bits_this_cycle;
+        let slot = &mut self.bus_bits[self.bus_bits_at];
+        self.bus_bits_sum = self.bus_bits_sum - u64::from(*slot) + u64::from(bits);
+        *slot = bits;
+        self.bus_bits_at = (self.bus_bits_at + 1) % self.bus_bits.len();
+        let window_s = self.bus_bits.len() as f64 * dt;
+        let s = &mut self.state;
+        s.cycle = self.cycle;
+        s.t = t;
+        s.log_time_ns = self.record.log_time_ns;
+        s.n = self.n;
+        s.odometry = OdometryState {
+            pose: odo.pose,
+            twist: odo.twist_body,
+            pose_covariance: odo.pose_covariance,
+            twist_covariance: odo.twist_covariance,
+        };
+        for i in 0..self.n {
+            let w = meas.wheels[i];
+            let speed = if w.wheel_speed.is_finite() {
+                w.wheel_speed
+            } else {
+                0.0
+            };
+            self.wheel_angle[i] += 0.5 * (self.prev_wheel_speed[i] + speed) * dt;
+            self.prev_wheel_speed[i] = speed;
+            s.joints[i] = JointState {
+                steer_angle: w.steer_angle,
+                steer_rate: w.steer_rate,
+                wheel_angle: self.wheel_angle[i],
+                wheel_speed: w.wheel_speed,
+                leg: w.leg,
+                leg_rate: w.leg_rate,
+            };
+            let d = &mut self.diag[i];
+            let watchdog = match self.link.wheel_fault(i) {
+                Some(WheelFault::Module { code, .. }) => code == FAULT_WATCHDOG,
+                Some(WheelFault::Device { fault, .. }) => matches!(
+                    fault,
+                    DeviceFault::MasterSilent { .. }
+                        | DeviceFault::Emcy {
+                            code: 0x8100..=0x81FF | 0x8250,
+                            ..
+                        }
+                ),
+                None => false,
+            };
+            if watchdog && !d.in_watchdog {
+                d.counters.watchdog_trips += 1;
+            }
+            d.in_watchdog = watchdog;
+            d.counters.age_cycles = alive[i];
+            d.counters.state = self.record.module_state[i];
+            s.diagnostics.modules[i] = d.counters;
+        }
+        s.diagnostics.bus_load = self.bus_bits_sum as f64 / (self.cfg.bitrate as f64 * window_s);
+        s.state = self.sup.state();
+        s.reason = self.sup.reason();
+        match &self.source {
+            Source::Live(l) => {
+                s.commands = l.stats;
+                s.shaping = l.shaper.status();
+            }
+            Source::Trajectory(_) => {
+                s.shaping = ShapingState {
+                    commanded: Default::default(),
+                    scale: 1.0,
+                    limiting: Limiting::None,
+                };
+            }
+        }
     }
 
     /// The record of the last finished cycle.
@@ -789,6 +1366,24 @@ impl CycleCore {
     /// Mutable access to the record (the IO layer adds timing and ground truth).
     pub fn record_mut(&mut self) -> &mut CycleRecord {
         &mut self.record
+    }
+}
+
+/// The odometry's encoder resolution for the platform's wire profile: the native protocol's
+/// steps, or (CiA 402) one velocity unit of the rolling drive and one increment of the
+/// steering drive's position.
+fn encoder_resolution(p: &Platform) -> EncoderResolution {
+    match p.protocol {
+        crate::platform::Protocol::Native => EncoderResolution::default(),
+        crate::platform::Protocol::Cia402 => {
+            let c = p.cia402();
+            let ws = c.drive.velocity_resolution().abs();
+            let sa = (std::f64::consts::TAU / c.steer.increments_per_joint_rev()).abs();
+            EncoderResolution {
+                wheel_speed: if ws.is_finite() && ws > 0.0 { ws } else { 1e-3 },
+                steer_angle: if sa.is_finite() && sa > 0.0 { sa } else { 1e-4 },
+            }
+        }
     }
 }
 

@@ -29,7 +29,7 @@ mod lockstep;
 mod realtime;
 mod summary;
 
-pub use self::core::{check_feasible, CycleCore, FAULT_RESET_CYCLES};
+pub use self::core::{check_feasible, CycleCore, DFL_ENTRY_SPEED, FAULT_RESET_CYCLES};
 pub use self::lockstep::{
     lockstep_cycle, run_lockstep, LockstepBus, LockstepPeer, LockstepReport, LockstepState,
     StepHooks, VirtualLockstepBus,
@@ -80,6 +80,10 @@ pub struct RuntimeConfig {
     pub counter_policy: CounterPolicy,
     /// Cycles to stay in Stopped/Fault at rest before the run reports itself done.
     pub linger_cycles: u32,
+    /// The live-command shaper's tunables (base service).
+    pub shaper: crate::shaper::ShaperConfig,
+    /// Bus bit rate (bit/s), for the measured bus load on the state port.
+    pub bitrate: u32,
 }
 
 impl Default for RuntimeConfig {
@@ -91,6 +95,8 @@ impl Default for RuntimeConfig {
             feedback_window: rollbase_driver::busload::DEFAULT_FEEDBACK_WINDOW_S,
             counter_policy: CounterPolicy::AcceptWithLoss,
             linger_cycles: 25,
+            shaper: crate::shaper::ShaperConfig::default(),
+            bitrate: 1_000_000,
         }
     }
 }
