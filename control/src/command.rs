@@ -83,7 +83,12 @@ pub fn check_twist(p: &Platform, t: &Twist) -> Result<(), Rejection> {
     for (field, v, bound, setting) in [
         ("vx", t.vx, s.max_linear_command, "max_linear_command"),
         ("vy", t.vy, s.max_linear_command, "max_linear_command"),
-        ("omega", t.omega, s.max_angular_command, "max_angular_command"),
+        (
+            "omega",
+            t.omega,
+            s.max_angular_command,
+            "max_angular_command",
+        ),
     ] {
         if v.abs() > bound {
             return Err(Rejection::Beyond {
@@ -107,10 +112,9 @@ pub fn check_legs(p: &Platform, l: &LegTargets) -> Result<LegTargets, Rejection>
         });
     }
     let mut out = *l;
-    for i in 0..n {
+    for (i, (field, w)) in LEG_FIELDS.iter().zip(&p.wheels).enumerate().take(n) {
         let v = l.lambda[i];
-        finite(LEG_FIELDS[i], v)?;
-        let w = &p.wheels[i];
+        finite(field, v)?;
         if v < w.lambda_min - LEG_RANGE_SLACK || v > w.lambda_max + LEG_RANGE_SLACK {
             return Err(Rejection::LegRange {
                 leg: i,
@@ -156,10 +160,16 @@ mod tests {
         assert_eq!(c.legs.unwrap().lambda[1], 0.56, "clamped into range");
         let mut bad = ok;
         bad.twist.vy = f64::NAN;
-        assert!(matches!(check_motion(&p, &bad), Err(Rejection::NonFinite { field: "vy", .. })));
+        assert!(matches!(
+            check_motion(&p, &bad),
+            Err(Rejection::NonFinite { field: "vy", .. })
+        ));
         bad = ok;
         bad.twist.omega = f64::INFINITY;
-        assert!(matches!(check_motion(&p, &bad), Err(Rejection::NonFinite { field: "omega", .. })));
+        assert!(matches!(
+            check_motion(&p, &bad),
+            Err(Rejection::NonFinite { field: "omega", .. })
+        ));
         bad = ok;
         bad.twist.vx = 1e6;
         let e = check_motion(&p, &bad).unwrap_err();
@@ -167,12 +177,24 @@ mod tests {
         assert!(e.to_string().contains("service.max_linear_command"), "{e}");
         bad = ok;
         bad.legs = Some(LegTargets::from_slice(&[0.4, 0.4, 0.4]));
-        assert!(matches!(check_motion(&p, &bad), Err(Rejection::LegCount { given: 3, expected: 4 })));
+        assert!(matches!(
+            check_motion(&p, &bad),
+            Err(Rejection::LegCount {
+                given: 3,
+                expected: 4
+            })
+        ));
         bad.legs = Some(LegTargets::from_slice(&[0.4, 0.9, 0.4, 0.4]));
         let e = check_motion(&p, &bad).unwrap_err();
         assert!(matches!(e, Rejection::LegRange { leg: 1, .. }));
         assert!(e.to_string().contains("leg 2"), "{e}");
         bad.legs = Some(LegTargets::from_slice(&[0.4, f64::NAN, 0.4, 0.4]));
-        assert!(matches!(check_motion(&p, &bad), Err(Rejection::NonFinite { field: "legs[1]", .. })));
+        assert!(matches!(
+            check_motion(&p, &bad),
+            Err(Rejection::NonFinite {
+                field: "legs[1]",
+                ..
+            })
+        ));
     }
 }

@@ -194,9 +194,15 @@ pub fn held_wheels(p: &Platform, r: &ReferenceSample) -> [bool; MAX_WHEELS] {
         return held;
     }
     let tw = r.twist_world();
-    for (i, h) in held.iter_mut().enumerate().take(p.n().min(r.n).min(MAX_WHEELS)) {
+    for (i, h) in held
+        .iter_mut()
+        .enumerate()
+        .take(p.n().min(r.n).min(MAX_WHEELS))
+    {
         let u = wheel_velocity_body(p, i, r.z[2], r.z[3 + i], &tw, r.dz[3 + i]);
-        *h = !(u[0].hypot(u[1]) >= crate::limits::HOLD_SPEED);
+        let sp = u[0].hypot(u[1]);
+        // NaN (a broken reference) holds too.
+        *h = sp.is_nan() || sp < crate::limits::HOLD_SPEED;
     }
     held
 }
@@ -370,7 +376,8 @@ impl DflController {
 
     /// Initialise η from the reference at t0 (perfect matching condition, seed 000 Sect. IV):
     /// k = the fastest reference wheel, v_Wk = |u_k*| (wheel aligned with atan2(u_k*)),
-    /// ω = θ̇*, v_λ = λ̇*.
+    /// ω = θ̇*, v_λ = λ̇*. With a steering reference, v_Wk is the projection of u_k* on the
+    /// reference's steering angle of wheel k (negative on the flipped branch).
     pub fn reset(&mut self, p: &Platform, reference: &ReferenceSample) {
         let n = p.n().min(MAX_WHEELS);
         let tw = reference.twist_world();
@@ -390,10 +397,24 @@ impl DflController {
             }
         }
         self.k = best.0;
-        self.eta_w = if best.1.is_finite() {
-            best.1.max(0.0)
-        } else {
+        self.eta_w = if !best.1.is_finite() {
             0.0
+        } else if reference.steer.valid {
+            // The wheel's heading is the steering reference's angle, which may be the flipped
+            // branch (after a reversal the wheel rolls backwards): η is the signed speed
+            // along it.
+            let u = wheel_velocity_body(
+                p,
+                best.0,
+                reference.z[2],
+                reference.z[3 + best.0],
+                &tw,
+                reference.dz[3 + best.0],
+            );
+            let a = reference.steer.angle[best.0];
+            u[0] * a.cos() + u[1] * a.sin()
+        } else {
+            best.1.max(0.0)
         };
         self.eta_omega = if tw.omega.is_finite() { tw.omega } else { 0.0 };
         for i in 0..MAX_WHEELS {

@@ -48,6 +48,7 @@ pub struct KinematicController {
     prev: [f64; 3 + MAX_WHEELS],
     has_prev: bool,
     started: bool,
+    terminates: bool,
 }
 
 impl KinematicController {
@@ -59,7 +60,15 @@ impl KinematicController {
             prev: [0.0; 3 + MAX_WHEELS],
             has_prev: false,
             started: false,
+            terminates: true,
         }
+    }
+
+    /// Whether the trajectory termination rule applies (module docs; default true). Live
+    /// commands never end, so the base service turns it off: a platform at rest with its
+    /// wheels turning in place (align-first) must keep receiving their steering commands.
+    pub fn set_termination(&mut self, on: bool) {
+        self.terminates = on;
     }
 
     /// Resets the internal state (flip branch, previous command) for a new trajectory.
@@ -222,7 +231,8 @@ impl KinematicController {
             u[0].hypot(u[1]) < 1e-6
         });
         self.started |= !ref_rest;
-        out.finished = self.started
+        out.finished = self.terminates
+            && self.started
             && ref_rest
             && ex.hypot(ey) < 1e-4
             && eth.abs() < 1e-4

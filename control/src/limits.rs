@@ -33,10 +33,11 @@
 //! # The output guard
 //!
 //! Whatever the controller asks, the command sent keeps every wheel within its speed and
-//! acceleration limits ([`guard_command`]): the change from the last command sent is scaled by
-//! one factor κ ∈ [0, 1] for all wheels (so the direction of the change in actuator space is
-//! kept, never one wheel clamped), the largest κ for which every wheel speed, steering rate,
-//! wheel acceleration and steering acceleration is within its limit.
+//! acceleration limits ([`guard_command`]): a request beyond the speed limits is first scaled
+//! as a whole into them, then the change from the last command sent is scaled by one factor
+//! κ ∈ [0, 1] for all wheels (so the direction of the change in actuator space is kept, never
+//! one wheel clamped), the largest κ for which every wheel acceleration and steering
+//! acceleration is within its limit.
 
 use crate::platform::{Limits, Platform};
 use crate::ports::Limiting;
@@ -45,7 +46,7 @@ use crate::types::{Command, ReferenceSample, MAX_WHEELS};
 /// Contact speed (m/s) below which a wheel holds its steering angle: its direction of travel
 /// is not defined well enough to steer by (1 cm/s: ten steps of the native protocol's wheel
 /// speed at r = 0.085 m, and the threshold of the chatter measure).
-pub const HOLD_SPEED: f64 = 0.01;
+pub const HOLD_SPEED: f64 = 0.02;
 
 /// What a motion asks of one wheel module (SI units, signed along the wheel's heading φ).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -102,9 +103,8 @@ pub fn contact_kinematics(p: &Platform, i: usize, r: &ReferenceSample) -> [[f64;
     for d in 0..2 {
         u[d] = vb[d] + k1 * ep[d] + dl * e[d];
         du[d] = ab[d] - om * jv[d] + k2 * ep[d] + ddl * e[d];
-        ddu[d] = jb[d] - 2.0 * om * ja[d] - dom * jv[d] - om * om * vb[d]
-            + k3 * ep[d]
-            + dddl * e[d];
+        ddu[d] =
+            jb[d] - 2.0 * om * ja[d] - dom * jv[d] - om * om * vb[d] + k3 * ep[d] + dddl * e[d];
     }
     [u, du, ddu]
 }
@@ -141,7 +141,11 @@ pub fn reference_ratio(p: &Platform, r: &ReferenceSample) -> (f64, Limiting) {
     let l = &p.limits;
     let mut worst = (0.0f64, Limiting::None);
     let mut take = |v: f64, lim: f64, k: Limiting| {
-        let q = if v.is_nan() { f64::INFINITY } else { v.abs() / lim };
+        let q = if v.is_nan() {
+            f64::INFINITY
+        } else {
+            v.abs() / lim
+        };
         if q > worst.0 {
             worst = (q, k);
         }
@@ -189,12 +193,7 @@ pub const CHECK_TOLERANCE: f64 = 1e-9;
 /// Checks a command against the limits, and its change from `prev` (the command sent one
 /// cycle of `dt` seconds earlier) against the acceleration limits. Returns the first
 /// violation, if any. This is the check the tests apply to every cycle.
-pub fn check_command(
-    l: &Limits,
-    prev: &Command,
-    cmd: &Command,
-    dt: f64,
-) -> Option<Violation> {
+pub fn check_command(l: &Limits, prev: &Command, cmd: &Command, dt: f64) -> Option<Violation> {
     let n = cmd.n.min(MAX_WHEELS);
     let tol = 1.0 + CHECK_TOLERANCE;
     for i in 0..n {
@@ -207,7 +206,7 @@ pub fn check_command(
             (dw, l.wheel_accel, Limiting::WheelAccel),
             (ds, l.steer_accel, Limiting::SteerAccel),
         ] {
-            if !(v.abs() <= lim * tol) {
+            if v.is_nan() || v.abs() > lim * tol {
                 return Some(Violation {
                     wheel: i,
                     what,
@@ -245,6 +244,21 @@ pub fn guard_command(l: &Limits, prev: &Command, desired: &Command, dt: f64) -> 
         } else {
             0.0
         };
+    }
+    // A desired command beyond the speed limits is first scaled as a whole into them (its
+    // direction kept): then the segment from `prev` to it lies inside the limits (both ends
+    // do, and the box is convex), and only the accelerations bound κ.
+    let mut ratio = 1.0f64;
+    for i in 0..n {
+        ratio = ratio
+            .max(d.wheels[i].wheel_speed.abs() / l.wheel_speed)
+            .max(d.wheels[i].steer_rate.abs() / l.steer_rate);
+    }
+    if ratio > 1.0 {
+        for i in 0..n {
+            d.wheels[i].wheel_speed /= ratio;
+            d.wheels[i].steer_rate /= ratio;
+        }
     }
     let mut k: f64 = 1.0;
     let dt = if dt.is_finite() && dt > 0.0 { dt } else { 0.0 };
@@ -319,8 +333,8 @@ mod tests {
         let z = f(t);
         let d1 = (f(t + h) - f(t - h)) / (2.0 * h);
         let d2 = (f(t + h) - 2.0 * f(t) + f(t - h)) / (h * h);
-        let d3 = (f(t + 2.0 * h) - 2.0 * f(t + h) + 2.0 * f(t - h) - f(t - 2.0 * h))
-            / (2.0 * h * h * h);
+        let d3 =
+            (f(t + 2.0 * h) - 2.0 * f(t + h) + 2.0 * f(t - h) - f(t - 2.0 * h)) / (2.0 * h * h * h);
         ReferenceSample {
             t,
             n: 4,
@@ -348,7 +362,8 @@ mod tests {
                     vy: r.dz[1],
                     omega: r.dz[2],
                 };
-                let u0 = crate::model::wheel_velocity_body(&p, i, r.z[2], r.z[3 + i], &tw, r.dz[3 + i]);
+                let u0 =
+                    crate::model::wheel_velocity_body(&p, i, r.z[2], r.z[3 + i], &tw, r.dz[3 + i]);
                 for d in 0..2 {
                     assert!((u[d] - u0[d]).abs() < 1e-12);
                     let fd1 = (up[d] - um[d]) / (2.0 * h);
@@ -466,8 +481,13 @@ mod tests {
             .expect("1 rad/s in 4 ms is 250 rad/s²");
         assert_eq!((v.wheel, v.what), (2, Limiting::WheelAccel));
         assert!(v.to_string().contains("wheel 3 wheel acceleration"));
-        let v = check_command(&p.limits, &prev, &cmd([0.0, f64::NAN, 0.0, 0.0], [0.0; 4]), dt)
-            .expect("NaN is a violation");
+        let v = check_command(
+            &p.limits,
+            &prev,
+            &cmd([0.0, f64::NAN, 0.0, 0.0], [0.0; 4]),
+            dt,
+        )
+        .expect("NaN is a violation");
         assert_eq!(v.wheel, 1);
     }
 }

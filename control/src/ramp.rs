@@ -163,6 +163,20 @@ impl Ramp {
         sum
     }
 
+    /// Time (s) [`Ramp::brake`] would take to bring the parameter to rest from now, at the
+    /// acceleration cap of the current segment.
+    pub fn brake_time(&self) -> f64 {
+        if self.done || self.k < 2 {
+            return 0.0;
+        }
+        let a = self.acap[self.segment_of(self.pos)];
+        if a > 0.0 {
+            self.vel / a
+        } else {
+            0.0
+        }
+    }
+
     /// Stops as soon as the acceleration caps allow (see the module docs).
     pub fn brake(&mut self) {
         if !self.done {
@@ -172,7 +186,7 @@ impl Ramp {
 
     /// Advances the clock by `dt` seconds; returns (s, ṡ, s̈) at the new time.
     pub fn advance(&mut self, dt: f64) -> (f64, f64, f64) {
-        if self.done || self.k < 2 || !(dt > 0.0) {
+        if self.done || self.k < 2 || dt.is_nan() || dt <= 0.0 {
             self.vel = 0.0;
             self.acc = 0.0;
             return self.state();
@@ -248,7 +262,10 @@ mod tests {
             let (s, v, a) = r.advance(dt);
             assert!(v <= 2.0 + 1e-9 && a.abs() <= 10.0 + 1e-9);
             assert!(s >= s_prev - 1e-15, "monotonic");
-            assert!((v - v_prev).abs() <= 10.0 * dt + 1e-9, "velocity continuous");
+            assert!(
+                (v - v_prev).abs() <= 10.0 * dt + 1e-9,
+                "velocity continuous"
+            );
             s_prev = s;
             v_prev = v;
         }

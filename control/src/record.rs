@@ -124,6 +124,10 @@ pub struct CycleRecord {
     pub reason: Option<FaultReason>,
     /// Timing.
     pub timing: TimingRecord,
+    /// Command-port counters (live commands; zero for trajectories).
+    pub commands: crate::ports::CommandStats,
+    /// What the shaper (or the time scaling) does with the reference.
+    pub shaping: crate::ports::ShapingState,
 }
 
 impl CycleRecord {
@@ -157,6 +161,8 @@ impl CycleRecord {
             state: SupervisorState::Idle,
             reason: None,
             timing: TimingRecord::default(),
+            commands: Default::default(),
+            shaping: Default::default(),
         }
     }
 

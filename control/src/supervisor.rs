@@ -629,6 +629,25 @@ pub fn stop_command(p: &Platform, last: &Command, dt: f64) -> Command {
     out
 }
 
+/// One cycle of the base service's halt (command timeout, stop request while following
+/// commands): the wheel speeds ramp down together like [`stop_command`] (the platform keeps
+/// its direction of motion), and the steering rates ramp to zero within the steering
+/// acceleration limit, after which the steering is held. Every value stays within its speed
+/// and acceleration limits.
+pub fn halt_command(p: &Platform, last: &Command, dt: f64) -> Command {
+    let mut out = stop_command(p, last, dt);
+    let step = p.limits.steer_accel * dt;
+    for i in 0..last.n.min(MAX_WHEELS) {
+        let s = last.wheels[i].steer_rate;
+        out.wheels[i].steer_rate = if s.is_finite() {
+            s - s.clamp(-step, step)
+        } else {
+            0.0
+        };
+    }
+    out
+}
+
 /// True when every wheel of the command is at rest (below `rest` rad/s).
 pub fn command_at_rest(cmd: &Command, rest: f64) -> bool {
     cmd.wheels[..cmd.n.min(MAX_WHEELS)]

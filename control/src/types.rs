@@ -124,6 +124,8 @@ pub struct SteerReference {
     pub angle: [f64; MAX_WHEELS],
     /// Steering rate per wheel (rad/s): non-zero while aligning.
     pub rate: [f64; MAX_WHEELS],
+    /// Steering acceleration per wheel (rad/s²).
+    pub accel: [f64; MAX_WHEELS],
 }
 
 impl ReferenceSample {

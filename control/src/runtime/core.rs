@@ -1,5 +1,8 @@
 //! The cycle minus IO and clocks: [`CycleCore`].
 
+// Index loops over parallel per-wheel arrays read better than zipped iterators here.
+#![allow(clippy::needless_range_loop)]
+
 use super::{ControllerKind, RuntimeConfig, RuntimeError};
 use crate::avoidance::Avoidance;
 use crate::command::{check_legs, check_motion, Rejection};
@@ -18,7 +21,7 @@ use crate::record::{AvoidanceRecord, CycleRecord, FrameRecord};
 use crate::shaper::Shaper;
 use crate::supervisor::FaultReason;
 use crate::supervisor::{
-    command_at_rest, stop_command, Mode, Supervisor, SupervisorInput, SupervisorState,
+    command_at_rest, halt_command, stop_command, Mode, Supervisor, SupervisorInput, SupervisorState,
 };
 use crate::trajectory::Trajectory;
 use crate::types::{Command, Measurement, ReferenceSample, Twist, MAX_WHEELS};
@@ -150,6 +153,9 @@ struct LiveSource {
     end_of_stream: bool,
     /// The DFL (not the kinematic controller) tracks this cycle.
     dfl_active: bool,
+    /// A halt's ramp has brought the commands to rest: the reference follows the measured
+    /// state until the next command.
+    halt_done: bool,
     last_rejection: Option<Rejection>,
 }
 
@@ -262,6 +268,7 @@ impl CycleCore {
             exit: false,
             end_of_stream: false,
             dfl_active: false,
+            halt_done: false,
             last_rejection: None,
         }));
         Ok(Self::build(
@@ -308,6 +315,8 @@ impl CycleCore {
             d.counters.node = node;
             d.counters.state = 255;
         }
+        let mut kinematic = KinematicController::new(&platform);
+        kinematic.set_termination(matches!(source, Source::Trajectory(_)));
         let mut state = BaseState {
             n,
             ..BaseState::default()
@@ -325,7 +334,7 @@ impl CycleCore {
             odom,
             sup,
             controller,
-            kinematic: KinematicController::new(&platform),
+            kinematic,
             avoidance,
             source,
             fb: [WheelFeedback::default(); MAX_WHEELS],
@@ -785,14 +794,8 @@ impl CycleCore {
         let nominal = self.reference(&meas, &odo);
         let (reference, av) = self.avoid(&nominal, dt);
         // Controller (only while tracking) before the supervisor so it can see the result.
-        let (mut sup_in, mut track_cmd) = self.supervisor_input(
-            &meas,
-            &odo,
-            &nominal,
-            age,
-            alive,
-            stale_node,
-        );
+        let (mut sup_in, mut track_cmd) =
+            self.supervisor_input(&meas, &odo, &nominal, age, alive, stale_node);
         if self.sup.state() == SupervisorState::Tracking {
             track_cmd = self.control(&meas, &odo, &reference, &mut sup_in, dt);
         }
@@ -806,7 +809,8 @@ impl CycleCore {
             track_cmd = self.start_tracking(&meas, &odo);
         }
         // Command: the supervisor's mode, then the output guard.
-        let (cmd, enable, brake, mode_name) = self.command_for(mode, &meas, &nominal, track_cmd);
+        let (cmd, enable, brake, mode_name) =
+            self.command_for(mode, &meas, &nominal, &reference, track_cmd);
         // Encode.
         let k = self.encode(t, &cmd, enable, brake, out);
         self.last_cmd = cmd;
@@ -848,6 +852,8 @@ impl CycleCore {
             f64::NAN
         };
         self.publish_state(t, &meas, &odo, alive, dt);
+        self.record.commands = self.state.commands;
+        self.record.shaping = self.state.shaping;
         self.cycle += 1;
         k
     }
@@ -885,7 +891,9 @@ impl CycleCore {
         let Source::Live(l) = &mut self.source else {
             return;
         };
-        if tracking && !l.shaper.halted() && t - l.last_valid > self.platform.service.command_timeout
+        if tracking
+            && !l.shaper.halted()
+            && t - l.last_valid > self.platform.service.command_timeout
         {
             l.shaper.halt();
             if l.holding_motion {
@@ -893,7 +901,7 @@ impl CycleCore {
             }
             l.holding_motion = false;
         }
-        if l.end_of_stream && (l.shaper.halted() || !tracking) && l.shaper.at_rest() && !l.exit {
+        if l.end_of_stream && (l.halt_done || !tracking) && !l.exit {
             l.exit = true;
             l.stop_pending = true;
             self.stop_requested = true;
@@ -924,7 +932,10 @@ impl CycleCore {
         match &mut self.source {
             Source::Trajectory(s) => s.traj.sample(t_ref.min(s.traj.duration())),
             Source::Live(l) => {
-                if !tracking {
+                if !l.shaper.halted() {
+                    l.halt_done = false;
+                }
+                if !tracking || l.halt_done {
                     let mut legs = [0.0; MAX_WHEELS];
                     let mut steer = [0.0; MAX_WHEELS];
                     for i in 0..n {
@@ -1128,7 +1139,7 @@ impl CycleCore {
                     o = self.kinematic.step(&self.platform, &input);
                 }
                 sup_in.controller_singular = !command_finite(&o.command);
-                sup_in.trajectory_done = l.stop_pending && l.shaper.at_rest();
+                sup_in.trajectory_done = l.stop_pending && l.halt_done;
                 o.command
             }
         }
@@ -1183,6 +1194,7 @@ impl CycleCore {
         mode: Mode,
         meas: &Measurement,
         nominal: &ReferenceSample,
+        reference: &ReferenceSample,
         track_cmd: Command,
     ) -> (Command, bool, bool, &'static str) {
         let dt = self.platform.dt();
@@ -1195,18 +1207,28 @@ impl CycleCore {
         let lead = self.link.disable_lead_cycles();
         let last_cycle =
             settling && self.may_end() && self.done_cycles + lead >= self.cfg.linger_cycles;
-        let guard = |c: Command, last: &Command| {
-            guard_command(&self.platform.limits, last, &c, dt).0
-        };
+        let guard =
+            |c: Command, last: &Command| guard_command(&self.platform.limits, last, &c, dt).0;
         let (cmd, enable, brake, mode_name) = match mode {
             Mode::Disabled => (Command::zero(self.n), false, false, "disabled"),
             Mode::Align => {
                 let (align_cmd, _) = alignment_command(&self.platform, meas, nominal);
                 (guard(align_cmd, &self.last_cmd), true, false, "align")
             }
+            Mode::Track if self.halting() => {
+                let c = halt_command(&self.platform, &self.last_cmd, dt);
+                if let Source::Live(l) = &mut self.source {
+                    if c == Command::zero(self.n) {
+                        l.halt_done = true;
+                        l.dfl_active = false;
+                    }
+                }
+                (c, true, false, "halt")
+            }
             Mode::Track => {
                 if command_finite(&track_cmd) {
-                    (guard(track_cmd, &self.last_cmd), true, false, "track")
+                    let lead = lag_compensation(&self.platform, reference, meas, track_cmd);
+                    (guard(lead, &self.last_cmd), true, false, "track")
                 } else {
                     (
                         stop_command(&self.platform, &self.last_cmd, dt),
@@ -1230,6 +1252,12 @@ impl CycleCore {
         } else {
             (cmd, enable, brake, mode_name)
         }
+    }
+
+    /// True while a halt (command timeout, stop request) brings the platform to rest under
+    /// live commands.
+    fn halting(&self) -> bool {
+        matches!(&self.source, Source::Live(l) if l.shaper.halted())
     }
 
     /// Setpoints of this cycle into `out`; returns how many frames.
@@ -1264,7 +1292,9 @@ impl CycleCore {
         ) && command_at_rest(cmd, self.sup.config().rest_speed);
         let idle_stop = self.sup.state() == SupervisorState::Idle && self.stop_requested;
         // The very last cycle of a finished run, drives disabled: hand the devices back.
-        if (settled || idle_stop) && self.may_end() && self.done_cycles + 1 >= self.cfg.linger_cycles
+        if (settled || idle_stop)
+            && self.may_end()
+            && self.done_cycles + 1 >= self.cfg.linger_cycles
         {
             self.link.release(out);
         }
@@ -1367,6 +1397,41 @@ impl CycleCore {
     pub fn record_mut(&mut self) -> &mut CycleRecord {
         &mut self.record
     }
+}
+
+/// The drives' lag compensation ([`crate::platform::Drives`]): adds τ × the reference's
+/// acceleration to each wheel's command: the rolling acceleration along the wheel's measured
+/// heading, (u̇*·h)/r, and the steering acceleration φ̈* (or the steering reference's, for a
+/// wheel steered by it).
+fn lag_compensation(
+    p: &Platform,
+    reference: &ReferenceSample,
+    meas: &Measurement,
+    mut cmd: Command,
+) -> Command {
+    let (tw, ts) = (p.drives.wheel_time_constant, p.drives.steer_time_constant);
+    if tw == 0.0 && ts == 0.0 {
+        return cmd;
+    }
+    let held = crate::dfl::held_wheels(p, reference);
+    for i in 0..cmd.n.min(p.n()).min(MAX_WHEELS) {
+        let phi = meas.wheels[i].steer_angle;
+        let du = crate::limits::contact_kinematics(p, i, reference)[1];
+        let a = (du[0] * phi.cos() + du[1] * phi.sin()) / p.wheel_radius;
+        let sa = if held[i] {
+            reference.steer.accel[i]
+        } else {
+            crate::limits::wheel_demand(p, i, reference).steer_accel
+        };
+        let w = &mut cmd.wheels[i];
+        if a.is_finite() {
+            w.wheel_speed += tw * a;
+        }
+        if sa.is_finite() {
+            w.steer_rate += ts * sa;
+        }
+    }
+    cmd
 }
 
 /// The odometry's encoder resolution for the platform's wire profile: the native protocol's

@@ -1,7 +1,9 @@
 //! The lockstep driver: the cycle core and a simulated peer on virtual time.
 
 use super::CycleCore;
+use crate::ports::CommandEvent;
 use crate::record::CycleRecord;
+use crate::supervisor::SupervisorState;
 use crate::types::{Pose, MAX_WHEELS};
 use rollbase_driver::bus::BusError;
 use rollbase_driver::frame::{CanFrame, FrameBuf, TimestampedFrame};
@@ -298,6 +300,67 @@ pub fn run_lockstep(
             core.request_stop();
         }
         // Wall-clock time spent inside the core, for reports only (never recorded).
+        let mut spent = Duration::ZERO;
+        let mut entered = std::time::Instant::now();
+        let mut timer = |on: bool| {
+            if on {
+                entered = std::time::Instant::now();
+            } else {
+                spent += entered.elapsed();
+            }
+        };
+        let mut hooks = StepHooks {
+            around_core: Some(&mut timer),
+            ..Default::default()
+        };
+        lockstep_cycle(&mut st, core, bus, peer, &mut hooks);
+        report.compute_us.push(spent.as_secs_f64() * 1e6);
+        sink(core.record(), core.wheel_xy());
+        report.cycles = k + 1;
+        if core.done() {
+            break;
+        }
+    }
+    report.wall_s = wall.elapsed().as_secs_f64();
+    report
+}
+
+/// Runs the base service on virtual time: the core follows `commands` (sorted by time; each
+/// event's `t` counts from the first cycle in which the core follows commands, i.e. from the
+/// moment the driver is ready, as in a command file) until the core is done (a `Shutdown`
+/// event, or the end of the stream and the platform at rest) or `max_cycles` elapse. An event
+/// is delivered in the first cycle that starts at or after its time, stamped with that
+/// cycle's time. Each record is passed to `sink`. Allocates nothing per cycle.
+pub fn run_lockstep_live(
+    core: &mut CycleCore,
+    bus: &mut dyn LockstepBus,
+    peer: &mut dyn LockstepPeer,
+    commands: &[CommandEvent],
+    max_cycles: u64,
+    sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
+) -> LockstepReport {
+    let mut report = LockstepReport {
+        compute_us: Vec::with_capacity(max_cycles.min(1 << 20) as usize),
+        ..Default::default()
+    };
+    let wall = std::time::Instant::now();
+    let mut st = LockstepState::new(core);
+    core.arm();
+    let mut ready_at: Option<f64> = None;
+    let mut next = 0usize;
+    for k in 0..max_cycles {
+        let t = st.time();
+        if ready_at.is_none() && core.state() == SupervisorState::Tracking {
+            ready_at = Some(t);
+        }
+        if let Some(t0) = ready_at {
+            while next < commands.len() && commands[next].t <= t - t0 + 1e-9 {
+                let mut ev = commands[next];
+                ev.t = t;
+                core.command(ev);
+                next += 1;
+            }
+        }
         let mut spent = Duration::ZERO;
         let mut entered = std::time::Instant::now();
         let mut timer = |on: bool| {

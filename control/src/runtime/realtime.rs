@@ -1,10 +1,12 @@
 //! The real-time cycle thread: absolute deadlines, two wake-ups per cycle.
 
 use super::CycleCore;
+use crate::ports::{BaseState, CommandEvent};
 use crate::record::CycleRecord;
 use rollbase_driver::bus::CanBus;
 use rollbase_driver::frame::FrameBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::Receiver;
 use std::sync::mpsc::{SyncSender, TrySendError};
 
 /// Options of the real-time cycle thread.
@@ -37,6 +39,8 @@ pub struct RealtimeReport {
     pub deadline_misses: u64,
     /// Records dropped because the recorder channel was full.
     pub records_dropped: u64,
+    /// State-port values dropped because their channel was full.
+    pub states_dropped: u64,
     /// What the thread could set up (SCHED_FIFO, mlockall), for the operator.
     pub setup: Vec<String>,
     /// Bus errors seen.
@@ -166,6 +170,47 @@ pub fn run_realtime(
     opts: &RealtimeOptions,
     time_origin_unix_ns: u64,
 ) -> RealtimeReport {
+    run_realtime_io(
+        core,
+        bus,
+        stop,
+        &RealtimeIo {
+            records: sink,
+            ..Default::default()
+        },
+        opts,
+        time_origin_unix_ns,
+    )
+}
+
+/// The channels of a real-time run: records out (recorder), state out (the state port: ROS 2,
+/// status line), commands in (the command port). All bounded and non-blocking on the cycle
+/// thread: a full output channel drops (and counts) the value, commands are taken with
+/// `try_recv` (at most [`MAX_COMMANDS_PER_CYCLE`] per cycle) and stamped with the time the
+/// cycle took them.
+#[derive(Default)]
+pub struct RealtimeIo<'a> {
+    /// Where cycle records go.
+    pub records: Option<&'a SyncSender<CycleRecord>>,
+    /// Where the state port's values go.
+    pub states: Option<&'a SyncSender<BaseState>>,
+    /// Where commands come from.
+    pub commands: Option<&'a Receiver<CommandEvent>>,
+}
+
+/// Most command events the cycle takes per cycle (the rest wait for the next cycle).
+pub const MAX_COMMANDS_PER_CYCLE: usize = 64;
+
+/// [`run_realtime`] with the base service's ports ([`RealtimeIo`]).
+pub fn run_realtime_io(
+    core: &mut CycleCore,
+    bus: &mut dyn CanBus,
+    stop: &AtomicBool,
+    io: &RealtimeIo<'_>,
+    opts: &RealtimeOptions,
+    time_origin_unix_ns: u64,
+) -> RealtimeReport {
+    let sink = io.records;
     let mut report = RealtimeReport {
         setup: realtime_setup(opts),
         ..Default::default()
@@ -198,6 +243,17 @@ pub fn run_realtime(
         // cycle's samples). Then SYNC (and whatever else is due at the cycle start), one sleep
         // to the window's end, one drain: two wake-ups a cycle instead of one per frame (the
         // cycle waits for the window's end anyway).
+        if let Some(rx) = io.commands {
+            for _ in 0..MAX_COMMANDS_PER_CYCLE {
+                match rx.try_recv() {
+                    Ok(mut ev) => {
+                        ev.t = td;
+                        core.command(ev);
+                    }
+                    Err(_) => break,
+                }
+            }
+        }
         core.start_cycle(td, &mut out);
         drain(bus, core, td - 1e-6, &mut report);
         send_all(bus, core, &out, &mut report);
@@ -227,11 +283,22 @@ pub fn run_realtime(
             let _ = t;
         }
         prev_wake = Some(wake);
+        {
+            let s = core.base_state_mut();
+            s.log_time_ns = time_origin_unix_ns.saturating_add((deadline - start).max(0) as u64);
+            s.t = td;
+            s.diagnostics.deadline_misses = report.deadline_misses;
+        }
         if let Some(tx) = sink {
             match tx.try_send(*core.record()) {
                 Ok(()) => {}
                 Err(TrySendError::Full(_)) => report.records_dropped += 1,
                 Err(TrySendError::Disconnected(_)) => report.records_dropped += 1,
+            }
+        }
+        if let Some(tx) = io.states {
+            if tx.try_send(*core.base_state()).is_err() {
+                report.states_dropped += 1;
             }
         }
         k += 1;

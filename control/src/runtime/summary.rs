@@ -39,7 +39,40 @@ pub struct RunSummary {
     pub fault_reason: Option<String>,
     /// Whether errors were measured against ground truth (simulation) or the estimate.
     pub against_truth: bool,
+    /// Largest commanded wheel acceleration, from the commands sent cycle to cycle (rad/s²).
+    pub max_wheel_accel_rad_s2: f64,
+    /// Largest commanded steering acceleration, cycle to cycle (rad/s²).
+    pub max_steer_accel_rad_s2: f64,
+    /// Command timeouts (live commands).
+    pub command_timeouts: u64,
+    /// Commands rejected by the command port.
+    pub rejected_commands: u64,
+    /// Valid commands ignored because the platform was not following commands.
+    pub ignored_commands: u64,
+    /// Largest angle between the reference's and the executed direction of travel (base
+    /// frame) while both moved faster than [`DIRECTION_MIN_SPEED`] and the platform tracked
+    /// (rad).
+    pub max_direction_error_rad: f64,
+    /// Longest time from a command timeout or stop request to the commanded wheels at rest
+    /// (s); `None` when the run had none.
+    pub stop_time_s: Option<f64>,
+    prev: Option<PrevCycle>,
+    stop_started: Option<f64>,
 }
+
+/// Speed (m/s) above which the direction of travel is compared ([`RunSummary`]).
+pub const DIRECTION_MIN_SPEED: f64 = 0.05;
+
+#[derive(Clone, Copy, Debug)]
+struct PrevCycle {
+    t: f64,
+    command: crate::types::Command,
+    truth: Option<crate::types::Pose>,
+    halted: bool,
+}
+
+/// Commanded wheel speed (rad/s) at or below which a stop has ended ([`RunSummary`]).
+pub const STOP_REST_SPEED: f64 = 0.02;
 
 /// p-th percentile (0..=100) of `xs` by nearest rank; NaN when empty.
 pub fn percentile(xs: &[f64], p: f64) -> f64 {
@@ -66,6 +99,50 @@ impl RunSummary {
     pub fn update(&mut self, r: &CycleRecord) {
         self.cycles = r.cycle + 1;
         let n = r.n.min(MAX_WHEELS);
+        self.command_timeouts = r.commands.timeouts;
+        self.rejected_commands = r.commands.rejected;
+        self.ignored_commands = r.commands.ignored;
+        let halted = r.shaping.limiting == crate::ports::Limiting::Timeout;
+        let at_rest = r.command.wheels[..n]
+            .iter()
+            .all(|w| w.wheel_speed.abs() <= STOP_REST_SPEED);
+        if let Some(p) = self.prev {
+            let dt = r.t - p.t;
+            if dt > 0.0 {
+                for i in 0..n {
+                    let dw =
+                        (r.command.wheels[i].wheel_speed - p.command.wheels[i].wheel_speed) / dt;
+                    let ds = (r.command.wheels[i].steer_rate - p.command.wheels[i].steer_rate) / dt;
+                    if dw.is_finite() {
+                        self.max_wheel_accel_rad_s2 = self.max_wheel_accel_rad_s2.max(dw.abs());
+                    }
+                    if ds.is_finite() {
+                        self.max_steer_accel_rad_s2 = self.max_steer_accel_rad_s2.max(ds.abs());
+                    }
+                }
+                if r.state == SupervisorState::Tracking && r.mode == "track" {
+                    self.direction_error(r, p.truth, dt);
+                }
+            }
+            let stopping_now = (halted && !p.halted)
+                || (r.state == SupervisorState::Stopping && self.stop_started.is_none());
+            if stopping_now && self.stop_started.is_none() {
+                self.stop_started = Some(p.t);
+            }
+        }
+        if let Some(t0) = self.stop_started {
+            if at_rest {
+                let d = r.t - t0;
+                self.stop_time_s = Some(self.stop_time_s.map_or(d, |x: f64| x.max(d)));
+                self.stop_started = None;
+            }
+        }
+        self.prev = Some(PrevCycle {
+            t: r.t,
+            command: r.command,
+            truth: r.truth.map(|(p, _)| p),
+            halted,
+        });
         self.periods_us.push(r.timing.period_us);
         if r.timing.compute_us > 0.0 {
             self.compute_us.push(r.timing.compute_us);
@@ -84,7 +161,9 @@ impl RunSummary {
             r.state,
             SupervisorState::Tracking | SupervisorState::Stopping | SupervisorState::Stopped
         );
-        if !tracking {
+        // A halt (command timeout, stop) is a controlled stop, not tracking: the platform
+        // leaves the reference by its drives' lag and the reference then restarts from it.
+        if !tracking || r.mode == "halt" || halted {
             return;
         }
         if r.avoidance.min_distance.is_finite() {
@@ -115,6 +194,34 @@ impl RunSummary {
         self.final_position_error_m = ep;
     }
 
+    /// Direction of travel: the reference's body velocity against the executed one (the
+    /// simulator's truth, differentiated over the cycle, or the odometry's twist).
+    fn direction_error(
+        &mut self,
+        r: &CycleRecord,
+        prev_truth: Option<crate::types::Pose>,
+        dt: f64,
+    ) {
+        let (s, c) = r.reference.z[2].sin_cos();
+        let (vx, vy) = (r.reference.dz[0], r.reference.dz[1]);
+        let rb = [c * vx + s * vy, -s * vx + c * vy];
+        let eb = match (r.truth, prev_truth) {
+            (Some((p, _)), Some(q)) => {
+                let (wx, wy) = ((p.x - q.x) / dt, (p.y - q.y) / dt);
+                let (s, c) = (0.5 * (p.theta + q.theta)).sin_cos();
+                [c * wx + s * wy, -s * wx + c * wy]
+            }
+            _ => [r.twist_body.vx, r.twist_body.vy],
+        };
+        let speed = eb[0].hypot(eb[1]);
+        if speed > DIRECTION_MIN_SPEED && rb[0].hypot(rb[1]) > DIRECTION_MIN_SPEED {
+            let e = (rb[0] * eb[1] - rb[1] * eb[0]).atan2(rb[0] * eb[0] + rb[1] * eb[1]);
+            if e.is_finite() {
+                self.max_direction_error_rad = self.max_direction_error_rad.max(e.abs());
+            }
+        }
+    }
+
     /// The one-object JSON of `rollbase demo --json`.
     pub fn to_json(&self) -> serde_json::Value {
         let f = |x: f64| {
@@ -143,6 +250,13 @@ impl RunSummary {
             "supervisor_final_state": self.final_state,
             "fault_reason": self.fault_reason,
             "errors_against": if self.against_truth { "ground_truth" } else { "estimate" },
+            "max_wheel_accel_rad_s2": f(self.max_wheel_accel_rad_s2),
+            "max_steer_accel_rad_s2": f(self.max_steer_accel_rad_s2),
+            "command_timeouts": self.command_timeouts,
+            "rejected_commands": self.rejected_commands,
+            "ignored_commands": self.ignored_commands,
+            "max_direction_error_deg": f(self.max_direction_error_rad.to_degrees()),
+            "stop_time_s": self.stop_time_s.map(f),
         })
     }
 }

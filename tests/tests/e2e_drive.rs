@@ -1,0 +1,475 @@
+//! The base service through the full frame path in lockstep (encode → virtual bus →
+//! simulated wheel modules and plant → bus → decode): live commands, the shaper, the command
+//! port and the state port. Errors are the simulator's truth against the shaped reference.
+
+use rollbase_control::ports::{CommandEvent, CommandKind, LegTargets, MotionCommand};
+use rollbase_control::record::CycleRecord;
+use rollbase_control::supervisor::SupervisorState;
+use rollbase_control::types::Twist;
+use rollbase_tests::*;
+
+fn ev(t: f64, kind: CommandKind) -> CommandEvent {
+    CommandEvent { t, kind }
+}
+
+fn motion(t: f64, vx: f64, vy: f64, omega: f64, legs: Option<[f64; 4]>) -> CommandEvent {
+    ev(
+        t,
+        CommandKind::Motion(MotionCommand {
+            twist: Twist { vx, vy, omega },
+            legs: legs.map(|l| LegTargets::from_slice(&l)),
+        }),
+    )
+}
+
+/// Holds each command for `hold` seconds, repeated every 0.4 s (within the 0.5 s timeout),
+/// then a zero twist until the platform rests, then the end of the stream.
+fn schedule(steps: &[(f64, f64, f64, Option<[f64; 4]>)], hold: f64) -> Vec<CommandEvent> {
+    let mut cmds = Vec::new();
+    let mut t = 0.0;
+    for &(vx, vy, om, legs) in steps {
+        let mut k = 0.0;
+        while k < hold - 1e-9 {
+            cmds.push(motion(t + k, vx, vy, om, legs));
+            k += 0.4;
+        }
+        t += hold;
+    }
+    for k in 0..5 {
+        cmds.push(motion(t + 0.4 * k as f64, 0.0, 0.0, 0.0, None));
+    }
+    cmds.push(ev(t + 2.0, CommandKind::EndOfStream));
+    cmds
+}
+
+/// The tracking bounds, against the shaped reference.
+fn assert_tracking_bounds(out: &RunOutcome) {
+    let s = &out.summary;
+    assert!(s.against_truth, "errors against the simulator's truth");
+    assert_eq!(s.final_state, "stopped", "{:?}", s.fault_reason);
+    assert!(
+        s.max_position_error_m < 0.005,
+        "max position error {} mm",
+        s.max_position_error_m * 1e3
+    );
+    assert!(
+        s.max_heading_error_rad < 0.5f64.to_radians(),
+        "max heading error {}°",
+        s.max_heading_error_rad.to_degrees()
+    );
+    assert!(
+        s.max_leg_error_m < 0.002,
+        "max leg error {} mm",
+        s.max_leg_error_m * 1e3
+    );
+}
+
+#[test]
+fn commands_far_beyond_every_limit_are_shaped_within_them() {
+    // 3 m/s, 5 rad/s, instant reversals, legs from one end of their range to the other.
+    let lo = [0.37; 4];
+    let hi = [0.56; 4];
+    let steps = [
+        (3.0, 0.0, 0.0, Some(hi)),
+        (-3.0, 0.0, 0.0, None),
+        (0.0, 3.0, 5.0, Some(lo)),
+        (0.0, -3.0, -5.0, None),
+        (2.0, 2.0, -5.0, Some(hi)),
+        (-2.0, 1.0, 0.0, Some(lo)),
+        (3.0, -3.0, 5.0, None),
+        (-3.0, 3.0, -5.0, Some([0.56, 0.37, 0.56, 0.37])),
+    ];
+    let out = run_live(&LiveOptions::default(), &schedule(&steps, 3.0));
+    let s = &out.summary;
+    eprintln!("{}", s.to_json());
+    assert_commands_within_limits(&out);
+    let p = &out.platform;
+    assert!(s.max_wheel_speed_rad_s <= p.limits.wheel_speed + 1e-9);
+    assert!(s.max_wheel_accel_rad_s2 <= p.limits.wheel_accel * (1.0 + 1e-9));
+    assert!(s.max_steer_accel_rad_s2 <= p.limits.steer_accel * (1.0 + 1e-9));
+    assert_tracking_bounds(&out);
+    assert!(
+        s.max_direction_error_rad < 2f64.to_radians(),
+        "direction error {}°",
+        s.max_direction_error_rad.to_degrees()
+    );
+    // Legs went from one end to the other (and back) and never beyond.
+    let legs = |r: &CycleRecord| r.truth.expect("truth").1;
+    let max = out.records.iter().map(|r| legs(r)[0]).fold(0.0, f64::max);
+    let min = out.records.iter().map(|r| legs(r)[0]).fold(1.0, f64::min);
+    assert!(max > 0.555 && min < 0.375, "legs travelled {min}..{max}");
+    // It really was slowed down: the fastest wheel ran at its limit's shaped share.
+    assert!(s.max_wheel_speed_rad_s > 0.85 * p.limits.wheel_speed);
+}
+
+/// Steering chatter of a wheel: reversals of its measured steering angle's direction of
+/// motion, of at least [`CHATTER_AMPLITUDE`] each, while its commanded rolling speed is below
+/// 1 cm/s (a turning point counts once the angle has come back by the amplitude from the
+/// last extreme: the drive's small settling at the end of a turn does not count, a wheel that
+/// flips or oscillates does).
+fn chatter(out: &RunOutcome, wheel: usize) -> usize {
+    let r = out.platform.wheel_radius;
+    let mut reversals = 0;
+    // (extreme angle, direction of motion: +1, −1 or 0 unknown)
+    let mut state: Option<(f64, f64)> = None;
+    let mut base = 0.0;
+    for rec in &out.records {
+        let slow = (rec.command.wheels[wheel].wheel_speed * r).abs() < 0.01;
+        if !slow {
+            state = None;
+            continue;
+        }
+        let a = rec.measurement.wheels[wheel].steer_angle;
+        let Some((ext, dir)) = state else {
+            state = Some((a, 0.0));
+            base = a;
+            continue;
+        };
+        let d = rollbase_control::angle::diff(a, ext);
+        if dir == 0.0 {
+            if rollbase_control::angle::diff(a, base).abs() >= CHATTER_AMPLITUDE {
+                state = Some((a, rollbase_control::angle::diff(a, base).signum()));
+            }
+        } else if d * dir > 0.0 {
+            state = Some((a, dir));
+        } else if d.abs() >= CHATTER_AMPLITUDE {
+            reversals += 1;
+            state = Some((a, -dir));
+        }
+    }
+    reversals
+}
+
+/// Smallest back-and-forth of a steering angle that counts as chatter (1°).
+const CHATTER_AMPLITUDE: f64 = 0.017_453_292_519_943_295;
+
+/// Largest change of a wheel's measured steering angle while its commanded rolling speed is
+/// below 1 cm/s (a flip would be about π).
+fn turn_while_slow(out: &RunOutcome, wheel: usize) -> f64 {
+    let r = out.platform.wheel_radius;
+    let mut worst = 0.0f64;
+    let mut anchor: Option<f64> = None;
+    for rec in &out.records {
+        let slow = (rec.command.wheels[wheel].wheel_speed * r).abs() < 0.01
+            && rec.state == SupervisorState::Tracking;
+        let a = rec.measurement.wheels[wheel].steer_angle;
+        match (slow, anchor) {
+            (true, None) => anchor = Some(a),
+            (true, Some(a0)) => worst = worst.max(rollbase_control::angle::diff(a, a0).abs()),
+            (false, _) => anchor = None,
+        }
+    }
+    worst
+}
+
+fn pivot_about(wheel: usize, omega: f64) -> (f64, f64, f64) {
+    let p = rollbase_control::Platform::justin();
+    let a = p.wheels[wheel].alpha;
+    let l = p.wheels[wheel].lambda_nominal;
+    let (px, py) = (l * a.cos(), l * a.sin());
+    // v + ω × P = 0: the contact point of `wheel` stays still.
+    (omega * py, -omega * px, omega)
+}
+
+#[test]
+fn a_pivot_about_a_wheel_holds_that_wheel_without_chatter() {
+    let (vx, vy, om) = pivot_about(1, 0.6);
+    let steps = [
+        (vx, vy, om, None),
+        (-vx, -vy, -om, None),
+        (vx, vy, om, None),
+    ];
+    let out = run_live(&LiveOptions::default(), &schedule(&steps, 4.0));
+    eprintln!("{}", out.summary.to_json());
+    assert_commands_within_limits(&out);
+    assert_tracking_bounds(&out);
+    let c = chatter(&out, 1);
+    let turn = turn_while_slow(&out, 1);
+    eprintln!(
+        "pivot wheel: {c} reversals, largest turn while slow {:.3}°",
+        turn.to_degrees()
+    );
+    assert_eq!(c, 0, "wheel 2 chatters: {c} steering reversals while still");
+    assert!(
+        turn < 2f64.to_radians(),
+        "wheel 2 turned {:.2}° while still",
+        turn.to_degrees()
+    );
+    // The platform did rotate about it.
+    let rot = out
+        .records
+        .iter()
+        .map(|r| r.reference.dz[2].abs())
+        .fold(0.0, f64::max);
+    assert!(rot > 0.5);
+}
+
+#[test]
+fn an_icr_sweeping_across_a_wheel_does_not_make_it_chatter() {
+    // The ICR moves along a line through wheel 0's contact point, from 30 cm before it to 30
+    // cm beyond, over 6 s; commands every 40 ms (a joystick moved slowly).
+    let p = rollbase_control::Platform::justin();
+    let a = p.wheels[0].alpha;
+    let l = p.wheels[0].lambda_nominal;
+    let (px, py) = (l * a.cos(), l * a.sin());
+    let om = 0.4;
+    let mut cmds = Vec::new();
+    let n = 150;
+    for k in 0..=n {
+        let f = k as f64 / n as f64;
+        // ICR c = P + (f − 0.5)·0.6·(1, 0); twist with that ICR: v = −ω × c = (ω c_y, −ω c_x).
+        let (cx, cy) = (px + (f - 0.5) * 0.6, py);
+        cmds.push(motion(0.04 * k as f64, om * cy, -om * cx, om, None));
+    }
+    let t = 0.04 * n as f64;
+    for k in 1..=5 {
+        cmds.push(motion(t + 0.4 * k as f64, 0.0, 0.0, 0.0, None));
+    }
+    cmds.push(ev(t + 2.4, CommandKind::EndOfStream));
+    let out = run_live(&LiveOptions::default(), &cmds);
+    eprintln!("{}", out.summary.to_json());
+    assert_commands_within_limits(&out);
+    assert_tracking_bounds(&out);
+    let c = chatter(&out, 0);
+    eprintln!("swept wheel: {c} reversals");
+    assert_eq!(c, 0, "wheel 1 chatters: {c} steering reversals while slow");
+    // The ICR came close and went across: wheel 1's direction of travel turned around.
+    assert!(
+        out.summary.min_icr_wheel_distance_m < 0.1,
+        "the ICR came close to the wheel"
+    );
+    let moving: Vec<_> = out
+        .records
+        .iter()
+        .filter(|r| (r.command.wheels[0].wheel_speed * out.platform.wheel_radius).abs() > 0.02)
+        .collect();
+    let first = moving.first().expect("moving").reference.steer.angle[0];
+    let last = moving.last().expect("moving").reference.steer.angle[0];
+    let turned = rollbase_control::angle::diff(last, first).abs();
+    // (π: the same line through the wheel; less when a flipped branch is taken at a stop.)
+    assert!(
+        turned > 0.5,
+        "wheel 1 turned only {turned} rad: the ICR did not cross it"
+    );
+}
+
+#[test]
+fn the_timeout_stops_within_the_deceleration_limit_and_the_next_command_resumes() {
+    let mut cmds = Vec::new();
+    for k in 0..10 {
+        cmds.push(motion(0.4 * k as f64, 0.8, 0.3, 0.5, None));
+    }
+    // Last command at 3.6 s; the timeout (0.5 s) expires at 4.1 s. Resume at 8 s.
+    for k in 0..5 {
+        cmds.push(motion(8.0 + 0.4 * k as f64, -0.5, 0.0, 0.0, None));
+    }
+    for k in 0..5 {
+        cmds.push(motion(10.0 + 0.4 * k as f64, 0.0, 0.0, 0.0, None));
+    }
+    cmds.push(ev(12.0, CommandKind::EndOfStream));
+    let out = run_live(&LiveOptions::default(), &cmds);
+    let s = &out.summary;
+    eprintln!("{}", s.to_json());
+    assert_commands_within_limits(&out);
+    assert_eq!(s.command_timeouts, 1);
+    assert_eq!(s.final_state, "stopped");
+    // Find the timeout: the first cycle whose shaping says Timeout.
+    let recs = &out.records;
+    let k0 = recs
+        .iter()
+        .position(|r| r.shaping.limiting == rollbase_control::ports::Limiting::Timeout)
+        .expect("a timeout");
+    let before = &recs[k0 - 1];
+    let p = &out.platform;
+    let wmax = before.command.wheels[..4]
+        .iter()
+        .map(|w| w.wheel_speed.abs())
+        .fold(0.0, f64::max);
+    let allowed = wmax / p.limits.wheel_accel + 2.0 * p.dt();
+    let k1 = recs[k0..]
+        .iter()
+        .position(|r| {
+            r.command.wheels[..4]
+                .iter()
+                .all(|w| w.wheel_speed.abs() <= 0.02)
+        })
+        .expect("at rest")
+        + k0;
+    let took = (recs[k1].t - before.t).max(0.0);
+    eprintln!("stop from {wmax:.2} rad/s took {took:.3} s, allowed {allowed:.3} s");
+    assert!(
+        took <= allowed + 1e-9,
+        "stop took {took} s, allowed {allowed} s"
+    );
+    // Steering held from the timeout to rest: the reference's angles do not move and the
+    // commanded steering rates are the feedback's small corrections only.
+    for r in &recs[k0..=k1] {
+        for i in 0..4 {
+            assert!(
+                rollbase_control::angle::diff(
+                    r.reference.steer.angle[i],
+                    before.reference.steer.angle[i]
+                )
+                .abs()
+                    < 1e-9,
+                "steering reference moved during the stop"
+            );
+            assert!(
+                r.command.wheels[i].steer_rate.abs() < 0.1,
+                "wheel {i} steering {}",
+                r.command.wheels[i].steer_rate
+            );
+        }
+    }
+    // It stays at rest until the next command, then moves again without re-arming.
+    let body_vx = |r: &CycleRecord| {
+        let (s, c) = r.reference.z[2].sin_cos();
+        c * r.reference.dz[0] + s * r.reference.dz[1]
+    };
+    let t_resume = recs
+        .iter()
+        .position(|r| body_vx(r) < -0.1)
+        .expect("resumed");
+    assert!(recs[t_resume].t > 7.9);
+    assert!(recs[k1..t_resume]
+        .iter()
+        .all(|r| r.state == SupervisorState::Tracking));
+}
+
+#[test]
+fn nan_inf_and_absurd_commands_are_rejected_counted_and_change_nothing() {
+    let good: Vec<CommandEvent> = {
+        let mut c = Vec::new();
+        for k in 0..10 {
+            c.push(motion(
+                0.4 * k as f64,
+                0.5,
+                -0.2,
+                0.3,
+                Some([0.4, 0.45, 0.5, 0.55]),
+            ));
+        }
+        for k in 10..15 {
+            c.push(motion(0.4 * k as f64, 0.0, 0.0, 0.0, None));
+        }
+        c.push(ev(6.4, CommandKind::EndOfStream));
+        c
+    };
+    let bad_kinds = [
+        motion(0.0, f64::NAN, 0.0, 0.0, None),
+        motion(0.0, 0.0, f64::INFINITY, 0.0, None),
+        motion(0.0, 0.0, 0.0, f64::NEG_INFINITY, None),
+        motion(0.0, 1e3, 0.0, 0.0, None),
+        motion(0.0, 0.0, 0.0, -250.0, None),
+        motion(0.0, 0.1, 0.0, 0.0, Some([0.4, 0.4, 0.4, f64::NAN])),
+        motion(0.0, 0.1, 0.0, 0.0, Some([0.4, 0.9, 0.4, 0.4])),
+        ev(0.0, CommandKind::Legs(LegTargets::from_slice(&[0.4, 0.4]))),
+    ];
+    let mut mixed = Vec::new();
+    for (j, c) in good.iter().enumerate() {
+        mixed.push(*c);
+        if j < 12 {
+            let mut b = bad_kinds[j % bad_kinds.len()];
+            b.t = c.t + 0.1;
+            mixed.push(b);
+        }
+    }
+    mixed.sort_by(|a, b| a.t.total_cmp(&b.t));
+    let clean = run_live(&LiveOptions::default(), &good);
+    let dirty = run_live(&LiveOptions::default(), &mixed);
+    assert_eq!(dirty.summary.rejected_commands, 12);
+    assert_eq!(clean.summary.rejected_commands, 0);
+    assert_eq!(clean.records.len(), dirty.records.len());
+    for (a, b) in clean.records.iter().zip(&dirty.records) {
+        assert_eq!(
+            a.command, b.command,
+            "cycle {}: a rejected command reached the wheels",
+            a.cycle
+        );
+        assert_eq!(a.reference, b.reference);
+    }
+    assert_eq!(dirty.summary.final_state, "stopped");
+}
+
+#[test]
+fn odometry_over_a_random_60_s_session_stays_within_its_reported_uncertainty() {
+    // Random commands (seeded): a new twist every 1.5–3 s, repeated every 0.4 s, now and then
+    // new leg targets; 60 s in all, then a stop.
+    let mut rng = rollbase_driver::rng::Rng::new(7);
+    let mut u = |lo: f64, hi: f64| lo + (hi - lo) * rng.next_f64();
+    let mut cmds = Vec::new();
+    let mut t = 0.0;
+    while t < 60.0 {
+        let hold = u(1.5, 3.0);
+        let (vx, vy, om) = (u(-0.9, 0.9), u(-0.9, 0.9), u(-1.0, 1.0));
+        let legs = (u(0.0, 1.0) < 0.3)
+            .then(|| [u(0.37, 0.56), u(0.37, 0.56), u(0.37, 0.56), u(0.37, 0.56)]);
+        let mut k = 0.0;
+        while k < hold {
+            cmds.push(motion(
+                t + k,
+                vx,
+                vy,
+                om,
+                if k == 0.0 { legs } else { None },
+            ));
+            k += 0.4;
+        }
+        t += hold;
+    }
+    for k in 0..5 {
+        cmds.push(motion(t + 0.4 * k as f64, 0.0, 0.0, 0.0, None));
+    }
+    cmds.push(ev(t + 2.0, CommandKind::EndOfStream));
+    let out = run_live(&LiveOptions::default(), &cmds);
+    eprintln!("{}", out.summary.to_json());
+    assert_eq!(
+        out.summary.final_state, "stopped",
+        "{:?}",
+        out.summary.fault_reason
+    );
+    let mut dist = 0.0;
+    for w in out.records.windows(2) {
+        let (a, _) = w[0].truth.unwrap();
+        let (b, _) = w[1].truth.unwrap();
+        dist += (b.x - a.x).hypot(b.y - a.y);
+    }
+    let last = out.records.last().unwrap();
+    let (truth, _) = last.truth.unwrap();
+    let est = out.final_state.expect("state").odometry;
+    let (ex, ey) = (est.pose.x - truth.x, est.pose.y - truth.y);
+    let eth = est.pose.theta - truth.theta;
+    let cov = est.pose_covariance;
+    let (sx, sy, sth) = (cov[0][0].sqrt(), cov[1][1].sqrt(), cov[2][2].sqrt());
+    eprintln!(
+        "distance {dist:.2} m; final error ({:.2}, {:.2}) mm, {:.4}°; 3σ ({:.2}, {:.2}) mm, {:.4}°",
+        ex * 1e3,
+        ey * 1e3,
+        eth.to_degrees(),
+        3e3 * sx,
+        3e3 * sy,
+        3.0 * sth.to_degrees()
+    );
+    assert!(dist > 20.0, "the session drove {dist} m");
+    assert!(
+        ex.hypot(ey) < 0.005 * dist,
+        "final position error {} m over {dist} m",
+        ex.hypot(ey)
+    );
+    assert!(
+        eth.abs() < 0.5f64.to_radians(),
+        "final heading error {}°",
+        eth.to_degrees()
+    );
+    assert!(
+        ex.abs() <= 3.0 * sx && ey.abs() <= 3.0 * sy && eth.abs() <= 3.0 * sth,
+        "true error outside the reported 3σ"
+    );
+    // The covariance is a covariance: symmetric, positive diagonal.
+    for i in 0..3 {
+        assert!(cov[i][i] > 0.0);
+        for j in 0..3 {
+            assert!((cov[i][j] - cov[j][i]).abs() <= 1e-12 * cov[i][i].max(cov[j][j]));
+        }
+    }
+}
