@@ -444,13 +444,20 @@ impl Shaper {
 
     /// The twist part of the goal: κ·(command) with κ the largest scale ≤ 1 for which every
     /// wheel stays within `speed_fraction` of its speed limit at any leg extension in range
-    /// (so moving legs never push a wheel beyond it), and what binds κ.
+    /// (so moving legs never push a wheel beyond it) — less the room the legs need while they
+    /// have somewhere to go — and what binds κ.
     fn twist_goal(&self) -> ([f64; 3], f64, Limiting) {
         if self.halted {
             return ([0.0; 3], 1.0, Limiting::Timeout);
         }
         let q = [self.twist_cmd.vx, self.twist_cmd.vy, self.twist_cmd.omega];
-        let vmax = self.cfg.speed_fraction * self.limits.wheel_speed * self.rw;
+        let mut vmax = self.cfg.speed_fraction * self.limits.wheel_speed * self.rw;
+        // Legs to move: leave the wheels room to roll them at half their speed limit
+        // (|u + c e| ≤ |u| + c).
+        let (maxr, _) = self.leg_remaining();
+        if maxr > self.cfg.leg_tolerance {
+            vmax -= 0.5 * self.cfg.speed_fraction * self.limits.leg_speed;
+        }
         let mut worst = 0.0f64;
         for i in 0..self.n {
             for l in [self.lam_min[i], self.lam_max[i]] {
@@ -701,7 +708,11 @@ impl Shaper {
                 psi[i] = g[1].atan2(g[0]);
             }
         }
-        if far {
+        // Only a new twist takes the stop-align-go path: a leg move's segments (the twist
+        // unchanged) run as planned, their steering within the caps; a leg braking segment in
+        // particular must be the one whose distance was planned.
+        let twist_changes = goal[..3] != from[..3];
+        if far && twist_changes {
             // Stop along the current direction first; the next plan aligns from rest.
             let zero = [0.0; NQ];
             let (ramp, _) = self.plan_line(&from, &zero);
@@ -928,14 +939,26 @@ impl Shaper {
                 vel
             }
             LegMove::Cruise {
-                vel,
-                twist,
-                target,
-                brake,
+                vel, twist, target, ..
             } => {
+                // The braking segment's plan depends on the legs (through the wheels' contact
+                // points), so its distance is planned again every cycle.
+                let mut stop = self.qd;
+                for i in 0..n {
+                    stop[3 + i] = 0.0;
+                }
+                let (down, _) = self.plan_line(&self.qd, &stop);
                 let (r, f) = remaining_to(&target);
                 let v = vel[f].abs();
-                if r - v * self.dt <= brake {
+                let brake = v * (down.duration() - down.integral_of_s());
+                self.legs_move = LegMove::Cruise {
+                    vel,
+                    twist,
+                    target,
+                    brake,
+                };
+                // Legs shorten on the way: one more cycle of travel as a margin.
+                if r - 2.0 * v * self.dt <= brake {
                     self.legs_move = LegMove::Decel { twist };
                     return zero;
                 }
@@ -1226,7 +1249,9 @@ mod tests {
         // The fastest wheel is within 90 % of its limit, and would be at exactly 90 % with
         // the legs fully out (the scale holds for any leg extension).
         let last = samples.last().unwrap();
-        let fastest = (0..4).map(|i| wheel_demand(&p, i, last).speed).fold(0.0, f64::max);
+        let fastest = (0..4)
+            .map(|i| wheel_demand(&p, i, last).speed)
+            .fold(0.0, f64::max);
         assert!(fastest <= 0.9 * p.limits.wheel_speed + 1e-9, "{fastest}");
         let at_max = (0..4)
             .map(|i| {
@@ -1235,7 +1260,10 @@ mod tests {
                 (v[0] - v[2] * l * a.sin()).hypot(v[1] + v[2] * l * a.cos()) / p.wheel_radius
             })
             .fold(0.0, f64::max);
-        assert!((at_max - 0.9 * p.limits.wheel_speed).abs() < 1e-9, "{at_max}");
+        assert!(
+            (at_max - 0.9 * p.limits.wheel_speed).abs() < 1e-9,
+            "{at_max}"
+        );
     }
 
     #[test]

@@ -1,4 +1,7 @@
-//! Debug: random live sessions; prints each seed's summary figures (and a CSV of the worst).
+//! Random live-command sessions in lockstep (the base service through the full frame path):
+//! `cargo run --release -p rollbase-tests --example random_session -- SEED0 SEED1 VMAX WMAX P_LEGS`
+//! prints each seed's tracking figures; `WIN=t0,t1` dumps every wheel between two times and `CSV=1`
+//! writes a per-cycle CSV to stderr. Used to look for weak spots of the shaper.
 use rollbase_control::ports::{CommandEvent, CommandKind, LegTargets, MotionCommand};
 use rollbase_control::types::Twist;
 use rollbase_tests::*;

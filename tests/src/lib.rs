@@ -307,17 +307,7 @@ pub fn run_live(
 ) -> RunOutcome {
     let mut platform = Platform::justin();
     platform.protocol = opts.profile;
-    if let Ok(g) = std::env::var("RB_GAINS") {
-        let v: Vec<f64> = g.split(',').map(|x| x.parse().unwrap()).collect();
-        platform.gains.dfl_kp = v[0];
-        platform.gains.dfl_kd = v[1];
-        platform.gains.kin_k_pos = v[2];
-        platform.gains.kin_k_heading = v[2];
-    }
-    let mut rt = opts.runtime.clone();
-    if std::env::var("RB_CTRL").as_deref() == Ok("kin") {
-        rt.controller = ControllerKind::Kinematic;
-    }
+    let rt = opts.runtime.clone();
     let mut core = CycleCore::new_live(platform.clone(), rt).expect("valid");
     let mut sim = Simulator::with_config(
         &platform,
