@@ -15,9 +15,8 @@ fn rollbase() -> Command {
     Command::new(env!("CARGO_BIN_EXE_rollbase"))
 }
 
-#[test]
-fn ctrl_c_during_a_real_time_demo_is_a_controlled_stop_then_exit() {
-    let _serial = serial();
+/// Starts a real-time demo, sends `signal` after 3 s, and returns its output.
+fn signal_a_demo(signal: libc::c_int) -> (std::process::Output, Duration) {
     let child = rollbase()
         .args(["demo", "--json"])
         .stdout(Stdio::piped())
@@ -26,25 +25,36 @@ fn ctrl_c_during_a_real_time_demo_is_a_controlled_stop_then_exit() {
         .expect("start rollbase demo");
     // Let it arm, align and start tracking.
     std::thread::sleep(Duration::from_millis(3000));
-    // SAFETY: sending SIGINT to our own child process.
-    let r = unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGINT) };
+    // SAFETY: sending a signal to our own child process.
+    let r = unsafe { libc::kill(child.id() as libc::pid_t, signal) };
     assert_eq!(r, 0);
     let sent = Instant::now();
     let out = child.wait_with_output().expect("wait");
-    let took = sent.elapsed();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        out.status.success(),
-        "exit {:?}\n{stdout}\n{stderr}",
-        out.status
-    );
-    let v: serde_json::Value = serde_json::from_str(stdout.trim()).expect("one JSON object");
-    assert_eq!(v["supervisor_final_state"], "stopped", "{v}");
-    assert!(v["fault_reason"].is_null());
-    // Stopped long before the 27.6 s trajectory would have ended.
-    assert!(took < Duration::from_secs(10), "took {took:?} to stop");
-    assert!(v["cycles"].as_u64().unwrap() < 250 * 10);
+    (out, sent.elapsed())
+}
+
+#[test]
+fn ctrl_c_and_sigterm_during_a_real_time_demo_are_a_controlled_stop_then_exit_3() {
+    let _serial = serial();
+    for (signal, name) in [(libc::SIGINT, "SIGINT"), (libc::SIGTERM, "SIGTERM")] {
+        let (out, took) = signal_a_demo(signal);
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        // Interrupted, not killed: exit code 3 (README "Exit codes"), summary printed.
+        assert_eq!(
+            out.status.code(),
+            Some(3),
+            "{name}: exit {:?}\n{stdout}\n{stderr}",
+            out.status
+        );
+        assert!(stderr.contains(&format!("{name}: controlled stop")), "{stderr}");
+        let v: serde_json::Value = serde_json::from_str(stdout.trim()).expect("one JSON object");
+        assert_eq!(v["supervisor_final_state"], "stopped", "{v}");
+        assert!(v["fault_reason"].is_null());
+        // Stopped long before the 27.6 s trajectory would have ended.
+        assert!(took < Duration::from_secs(10), "took {took:?} to stop");
+        assert!(v["cycles"].as_u64().unwrap() < 250 * 10);
+    }
 }
 
 #[test]

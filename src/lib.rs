@@ -4,9 +4,11 @@
 //! and its drivers); everything that touches a file format or a middleware lives here, so a
 //! user can depend on `rollbase-control` alone without pulling IO:
 //!
+//! - [`commands`]: motion commands as JSON Lines (command files, stdin);
 //! - [`record`]: MCAP recordings of runs;
 //! - [`plot`]: PNG plots of a recording.
 #![deny(missing_docs)]
 
+pub mod commands;
 pub mod plot;
 pub mod record;

@@ -10,23 +10,27 @@ mod monitor_json;
 use clap::Parser;
 
 fn main() {
-    // Behave like a Unix filter: when stdout is closed early (`rollbase dbc | head`), end
-    // quietly instead of panicking on the failed write.
-    // SAFETY: restoring the default disposition of SIGPIPE at start-up, before any thread exists.
+    // A closed stdout or stderr must never kill a run (it would lose its recording): SIGPIPE
+    // is ignored and every write checks its own result (`app::outln!` and friends; a filter
+    // command like `rollbase dbc | head` ends quietly when its reader goes away).
+    // SAFETY: setting a signal disposition at start-up, before any thread exists.
     unsafe {
-        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        libc::signal(libc::SIGPIPE, libc::SIG_IGN);
     }
+    app::init_logging();
     let cli = app::Cli::parse();
     match app::run(cli) {
         Ok(code) => std::process::exit(code),
         Err(e) => {
-            eprintln!("error: {e}");
+            use std::io::Write;
+            let mut w = std::io::stderr();
+            let _ = writeln!(w, "error: {e}");
             let mut src = std::error::Error::source(&e);
             while let Some(s) = src {
-                eprintln!("  caused by: {s}");
+                let _ = writeln!(w, "  caused by: {s}");
                 src = s.source();
             }
-            std::process::exit(2);
+            std::process::exit(app::exit::REFUSED);
         }
     }
 }

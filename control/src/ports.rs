@@ -186,7 +186,7 @@ impl Limiting {
 }
 
 /// Command-port counters, cumulative since start.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct CommandStats {
     /// Commands accepted.
     pub accepted: u64,
@@ -198,6 +198,8 @@ pub struct CommandStats {
     /// Valid commands not followed because the platform was not following commands
     /// (stopped, in fault or not yet armed: re-arm first).
     pub ignored: u64,
+    /// Why the last rejected command was rejected.
+    pub last_rejection: Option<crate::command::Rejection>,
 }
 
 /// What the shaper is doing with the live command.

@@ -1,13 +1,52 @@
 //! Command-line commands: thin adapters over the library crates.
 //!
-//! One module per job: [`trajectory`] (`demo`, `run`: follow a trajectory), [`monitor`]
-//! (decode frames), [`sinks`] (where a run's records go: summary, recording, candump).
+//! One module per job: [`trajectory`] (`demo`, `run`: follow a trajectory), [`service`]
+//! (`drive` and the live-command demo: the base service), [`teleop`] (the keyboard as a
+//! command source), [`monitor`] (decode frames), [`sinks`] (where a run's records go:
+//! summary, recording, candump).
+//!
+//! Output never kills a run: SIGPIPE is ignored (`main`), and every write to stdout or stderr
+//! goes through [`outln!`] / [`errln!`], which drop what a closed pipe cannot take.
+
+/// `println!` that ignores a closed stdout (a run must not die of its output).
+macro_rules! outln {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($arg)*);
+    }};
+}
+/// `print!` that ignores a closed stdout.
+macro_rules! out {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = write!(std::io::stdout(), $($arg)*);
+    }};
+}
+/// `eprintln!` that ignores a closed stderr.
+macro_rules! errln {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), $($arg)*);
+    }};
+}
+/// `eprint!` that ignores a closed stderr.
+macro_rules! err {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = write!(std::io::stderr(), $($arg)*);
+    }};
+}
 
 mod monitor;
+mod rt;
+mod service;
 mod sinks;
+mod teleop;
 mod trajectory;
 
 use monitor::MonitorArgs;
+use service::DriveArgs;
+pub(crate) use sinks::exit;
 use trajectory::{DemoArgs, RunArgs};
 
 use clap::{Args, Parser, Subcommand};
@@ -56,6 +95,18 @@ pub enum CliError {
     /// An argument value is not acceptable.
     #[error("{0}")]
     Usage(String),
+    /// A command file or line is not acceptable.
+    #[error(transparent)]
+    Commands(#[from] rollbase::commands::CommandFileError),
+    /// Writing the recording or the candump log failed during the run.
+    #[error("recording {path} failed during the run (the run was stopped; what was recorded up to then is kept)")]
+    Recording {
+        /// The output.
+        path: String,
+        /// Why.
+        #[source]
+        source: Box<CliError>,
+    },
 }
 
 /// rollbase: CAN driver and 250 Hz control stack for omnidirectional platforms with steered
@@ -73,6 +124,8 @@ enum Command {
     Demo(DemoArgs),
     /// Drive a platform on a CAN interface along a trajectory (vcan0 with rollbase-sim, or hardware).
     Run(RunArgs),
+    /// The base driver: follow live motion commands on a CAN bus until SIGINT or SIGTERM.
+    Drive(DriveArgs),
     /// Decode frames live from a bus or from a candump log, one line per frame.
     Monitor(MonitorArgs),
     /// Plot a recording to PNG files.
@@ -168,28 +221,29 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
     match cli.command {
         Command::Demo(a) => trajectory::demo(a),
         Command::Run(a) => trajectory::run_bus(a),
+        Command::Drive(a) => service::drive(a),
         Command::Monitor(a) => monitor::monitor(a),
         Command::Bridge(a) => Ok(crate::bridge::run(a)?),
         Command::Plot(a) => {
             let rep = rollbase::plot::plot_recording(&a.file, &a.out)?;
             for f in &rep.files {
-                println!("{}", f.display());
+                outln!("{}", f.display());
             }
             if !rep.labelled {
-                eprintln!("note: no TTF font found, plots have no text; install fonts-dejavu-core or set ROLLBASE_FONT");
+                errln!("note: no TTF font found, plots have no text; install fonts-dejavu-core or set ROLLBASE_FONT");
             }
             Ok(0)
         }
         Command::Dbc => {
-            print!("{}", rollbase_driver::dbc::dbc());
+            out!("{}", rollbase_driver::dbc::dbc());
             Ok(0)
         }
         Command::ProtocolDoc => {
-            print!("{}", rollbase_driver::dbc::protocol_markdown());
+            out!("{}", rollbase_driver::dbc::protocol_markdown());
             Ok(0)
         }
         Command::Cia402Doc => {
-            print!("{}", rollbase_driver::canopen::doc::markdown());
+            out!("{}", rollbase_driver::canopen::doc::markdown());
             Ok(0)
         }
         Command::BusLoad(a) => {
@@ -207,7 +261,7 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
                         bitrate: a.bitrate,
                         ..Default::default()
                     };
-                    print!("{}", rollbase_driver::busload::report(&cfg));
+                    out!("{}", rollbase_driver::busload::report(&cfg));
                 }
                 Protocol::Cia402 => {
                     let l = rollbase_driver::canopen::busload::load(
@@ -216,7 +270,7 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
                         p.cycle_hz,
                         a.bitrate,
                     );
-                    println!("{l}");
+                    outln!("{l}");
                 }
             }
             Ok(0)
@@ -224,13 +278,13 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
         Command::Config { cmd } => match cmd {
             ConfigCmd::Check { file } => {
                 let p = Platform::load(&file)?;
-                println!(
+                outln!(
                     "# {}: valid platform `{}` with {} wheels",
                     file.display(),
                     p.name,
                     p.n()
                 );
-                print!("{}", p.to_toml_string());
+                out!("{}", p.to_toml_string());
                 Ok(0)
             }
             ConfigCmd::Default { profile } => {
@@ -239,7 +293,7 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
                 if profile == Protocol::Cia402 {
                     p.cia402 = Some(p.cia402());
                 }
-                print!("{}", p.to_toml_string());
+                out!("{}", p.to_toml_string());
                 Ok(0)
             }
         },
@@ -291,19 +345,75 @@ pub(crate) fn unix_now() -> f64 {
         .unwrap_or(0.0)
 }
 
-pub(crate) fn install_ctrl_c(stop: Arc<AtomicBool>) {
+/// What a signal asks of the process.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum SignalAction {
+    /// Move something: a controlled stop of the platform, then exit.
+    ControlledStop,
+    /// Move nothing (monitor, tools): just end.
+    End,
+}
+
+/// SIGINT (Ctrl-C) and SIGTERM (what service managers send) both set `stop`, once; the run
+/// then stops in a controlled way and finishes its outputs. A second signal is reported and
+/// otherwise ignored (a stop in progress is not cut short). Returns a flag that tells
+/// whether a signal came.
+pub(crate) fn install_signals(stop: Arc<AtomicBool>, action: SignalAction) -> Arc<AtomicBool> {
+    let came = Arc::new(AtomicBool::new(false));
+    let came2 = came.clone();
     std::thread::spawn(move || {
         let Ok(rt) = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
         else {
+            tracing::error!(
+                "cannot start the signal handler; Ctrl-C and SIGTERM end the process at once"
+            );
             return;
         };
         rt.block_on(async {
-            if tokio::signal::ctrl_c().await.is_ok() {
-                eprintln!("\nCtrl-C: controlled stop (Ctrl-C again is ignored; the platform is decelerating)");
-                stop.store(true, Ordering::SeqCst);
+            use tokio::signal::unix::{signal, SignalKind};
+            let (Ok(mut int), Ok(mut term)) = (
+                signal(SignalKind::interrupt()),
+                signal(SignalKind::terminate()),
+            ) else {
+                tracing::error!("cannot listen for SIGINT/SIGTERM");
+                return;
+            };
+            let mut first = true;
+            loop {
+                let name = tokio::select! {
+                    _ = int.recv() => "SIGINT",
+                    _ = term.recv() => "SIGTERM",
+                };
+                if first {
+                    match action {
+                        SignalAction::ControlledStop => tracing::warn!(
+                            "{name}: controlled stop (the platform decelerates within its limits, steering held), then exit"
+                        ),
+                        SignalAction::End => tracing::info!("{name}: ending"),
+                    }
+                    came2.store(true, Ordering::SeqCst);
+                    stop.store(true, Ordering::SeqCst);
+                    first = false;
+                } else if action == SignalAction::ControlledStop {
+                    tracing::warn!("{name} again: the controlled stop is already under way");
+                }
             }
         });
     });
+    came
+}
+
+/// Logs through `tracing` to stderr (level from `RUST_LOG`, default `info`); a closed stderr
+/// never stops the process.
+pub fn init_logging() {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .with_target(false)
+        .try_init();
 }

@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::{install_ctrl_c, load_platform_as, CliError};
+use super::{install_signals, load_platform_as, CliError, SignalAction};
 
 #[derive(Args, Debug)]
 pub(crate) struct MonitorArgs {
@@ -121,7 +121,7 @@ pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
         (Some(iface), None) => {
             let mut canbus = bus::open(iface)?;
             let stop = Arc::new(AtomicBool::new(false));
-            install_ctrl_c(stop.clone());
+            install_signals(stop.clone(), SignalAction::End);
             while !stop.load(Ordering::Relaxed) {
                 let deadline = std::time::Instant::now() + Duration::from_millis(200);
                 match canbus.recv_until(deadline) {

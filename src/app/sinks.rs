@@ -1,4 +1,15 @@
 //! Where a run's records go: the summary, the MCAP recording, the candump log.
+//!
+//! Recordings are never lost or overwritten by a run that fails:
+//! - every path is checked before anything starts (the same file given twice, a path under a
+//!   regular file, a directory that cannot be made), and nothing is created before the run's
+//!   inputs are validated and its bus is open ([`OutputPlan::check`], called by each command);
+//! - the MCAP and the candump log are written under a temporary name next to the target
+//!   (`.NAME.partial-PID`) and renamed onto it only when finished, so an earlier file of the
+//!   same name stays until a new one is complete;
+//! - a write error (a full disk) stops the run in a controlled way ([`Sinks::failed`] tells
+//!   the caller; the cycle keeps its own rhythm, the summary is still printed) and its cause
+//!   is reported; what was recorded up to then is finished and kept under the target name.
 
 use rollbase::record::McapRecorder;
 use rollbase_control::record::CycleRecord;
@@ -6,53 +17,184 @@ use rollbase_control::runtime::RunSummary;
 use rollbase_driver::candump::{CandumpWriter, LogEntry};
 use rollbase_driver::frame::CanFrame;
 use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use super::{CliError, CommonRun};
 
-/// Where the records go: summary, MCAP, candump, progress.
-pub(crate) struct Sinks {
-    pub(crate) summary: RunSummary,
-    pub(crate) mcap: Option<McapRecorder>,
-    pub(crate) candump: Option<CandumpWriter<std::io::BufWriter<std::fs::File>>>,
-    pub(crate) iface: String,
-    pub(crate) time_origin: f64,
-    pub(crate) error: Option<CliError>,
+/// The output files of a run, checked before anything starts.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct OutputPlan {
+    /// The MCAP recording (given, or implied by `--plots DIR`).
+    pub(crate) record: Option<PathBuf>,
+    /// The candump log.
+    pub(crate) candump: Option<PathBuf>,
+    /// The plots directory.
+    pub(crate) plots: Option<PathBuf>,
 }
 
-impl Sinks {
-    pub(crate) fn new(
-        scenario: &str,
-        common: &CommonRun,
-        iface: &str,
-        time_origin: f64,
-        meta: BTreeMap<String, String>,
-    ) -> Result<Self, CliError> {
-        let record_path = common.record.clone().or_else(|| {
+impl OutputPlan {
+    /// The outputs `common` asks for (`scenario` names the implied recording of `--plots`).
+    pub(crate) fn of(common: &CommonRun, scenario: &str) -> Self {
+        let record = common.record.clone().or_else(|| {
             common
                 .plots
                 .as_ref()
                 .map(|d| d.join(format!("{scenario}.mcap")))
         });
-        let mcap = match record_path {
-            Some(p) => Some(McapRecorder::create(&p, &meta)?),
+        Self {
+            record,
+            candump: common.candump.clone(),
+            plots: common.plots.clone(),
+        }
+    }
+
+    /// Refuses what cannot work, before anything is created: the same file for two outputs,
+    /// a path whose directory part is a regular file, an output that is a directory.
+    pub(crate) fn check(&self) -> Result<(), CliError> {
+        let outs: Vec<(&str, &PathBuf)> = [
+            ("--record", self.record.as_ref()),
+            ("--candump", self.candump.as_ref()),
+        ]
+        .into_iter()
+        .filter_map(|(k, p)| p.map(|p| (k, p)))
+        .collect();
+        for (k, p) in &outs {
+            check_output_path(k, p)?;
+        }
+        if let (Some(a), Some(b)) = (&self.record, &self.candump) {
+            if same_file(a, b) {
+                return Err(CliError::Usage(format!(
+                    "--record and --candump both name {}: give two different files",
+                    a.display()
+                )));
+            }
+        }
+        if let Some(d) = &self.plots {
+            if d.exists() && !d.is_dir() {
+                return Err(CliError::Usage(format!(
+                    "--plots {}: not a directory",
+                    d.display()
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A path's absolute form, as far as it can be resolved (for comparing outputs).
+fn absolute(p: &Path) -> PathBuf {
+    let abs = if p.is_absolute() {
+        p.to_path_buf()
+    } else {
+        std::env::current_dir().unwrap_or_default().join(p)
+    };
+    match (abs.parent(), abs.file_name()) {
+        (Some(d), Some(f)) => d.canonicalize().map(|d| d.join(f)).unwrap_or(abs),
+        _ => abs,
+    }
+}
+
+fn same_file(a: &Path, b: &Path) -> bool {
+    absolute(a) == absolute(b)
+}
+
+/// An output file's path must be creatable: no regular file among its directories, and not a
+/// directory itself.
+fn check_output_path(option: &str, p: &Path) -> Result<(), CliError> {
+    if p.is_dir() {
+        return Err(CliError::Usage(format!(
+            "{option} {}: is a directory; give a file name",
+            p.display()
+        )));
+    }
+    let mut dir = p.parent();
+    while let Some(d) = dir {
+        if d.as_os_str().is_empty() {
+            break;
+        }
+        if d.exists() {
+            if !d.is_dir() {
+                return Err(CliError::Usage(format!(
+                    "{option} {}: {} is a file, not a directory",
+                    p.display(),
+                    d.display()
+                )));
+            }
+            break;
+        }
+        dir = d.parent();
+    }
+    Ok(())
+}
+
+/// The temporary name a file is written under until it is complete.
+fn partial_path(p: &Path) -> PathBuf {
+    let name = p
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "output".into());
+    p.with_file_name(format!(".{name}.partial-{}", std::process::id()))
+}
+
+fn make_parent(p: &Path) -> Result<(), CliError> {
+    if let Some(d) = p.parent() {
+        if !d.as_os_str().is_empty() {
+            std::fs::create_dir_all(d).map_err(|e| CliError::File {
+                path: d.display().to_string(),
+                message: format!("cannot create the directory: {e}"),
+            })?;
+        }
+    }
+    Ok(())
+}
+
+/// Where the records go: summary, MCAP, candump.
+pub(crate) struct Sinks {
+    pub(crate) summary: RunSummary,
+    mcap: Option<(McapRecorder, PathBuf, PathBuf)>,
+    candump: Option<(
+        CandumpWriter<std::io::BufWriter<std::fs::File>>,
+        PathBuf,
+        PathBuf,
+    )>,
+    plan: OutputPlan,
+    iface: String,
+    pub(crate) time_origin: f64,
+    error: Option<CliError>,
+}
+
+impl Sinks {
+    /// Opens the outputs of `plan` (already checked) under their temporary names.
+    pub(crate) fn new(
+        scenario: &str,
+        plan: &OutputPlan,
+        iface: &str,
+        time_origin: f64,
+        meta: BTreeMap<String, String>,
+    ) -> Result<Self, CliError> {
+        plan.check()?;
+        let mcap = match &plan.record {
+            Some(p) => {
+                make_parent(p)?;
+                let tmp = partial_path(p);
+                Some((McapRecorder::create(&tmp, &meta)?, tmp, p.clone()))
+            }
             None => None,
         };
-        let candump = match &common.candump {
+        let candump = match &plan.candump {
             Some(p) => {
-                if let Some(d) = p.parent() {
-                    if !d.as_os_str().is_empty() {
-                        std::fs::create_dir_all(d).map_err(|e| CliError::File {
-                            path: d.display().to_string(),
-                            message: e.to_string(),
-                        })?;
-                    }
-                }
-                let f = std::fs::File::create(p).map_err(|e| CliError::File {
+                make_parent(p)?;
+                let tmp = partial_path(p);
+                let f = std::fs::File::create(&tmp).map_err(|e| CliError::File {
                     path: p.display().to_string(),
                     message: format!("cannot create candump log: {e}"),
                 })?;
-                Some(CandumpWriter::new(std::io::BufWriter::new(f)))
+                Some((
+                    CandumpWriter::new(std::io::BufWriter::new(f)),
+                    tmp,
+                    p.clone(),
+                ))
             }
             None => None,
         };
@@ -60,10 +202,21 @@ impl Sinks {
             summary: RunSummary::new(scenario),
             mcap,
             candump,
+            plan: plan.clone(),
             iface: iface.into(),
             time_origin,
             error: None,
         })
+    }
+
+    /// True once writing an output failed (the caller stops the run).
+    pub(crate) fn failed(&self) -> bool {
+        self.error.is_some()
+    }
+
+    /// The write error, if any (for the operator while the run stops).
+    pub(crate) fn error(&self) -> Option<&CliError> {
+        self.error.as_ref()
     }
 
     pub(crate) fn take(&mut self, r: &CycleRecord, wheel_xy: &[[f64; 2]]) {
@@ -71,13 +224,16 @@ impl Sinks {
         if self.error.is_some() {
             return;
         }
-        if let Some(m) = &mut self.mcap {
+        if let Some((m, _, target)) = &mut self.mcap {
             if let Err(e) = m.write_cycle(r, wheel_xy) {
-                self.error = Some(e.into());
+                self.error = Some(CliError::Recording {
+                    path: target.display().to_string(),
+                    source: Box::new(e.into()),
+                });
                 return;
             }
         }
-        if let Some(w) = &mut self.candump {
+        if let Some((w, _, target)) = &mut self.candump {
             // Frames in bus order: SYNC first, then what was received, then the setpoints.
             let mut frames: Vec<(f64, &rollbase_control::record::FrameRecord)> =
                 Vec::with_capacity(r.n_rx + r.n_tx);
@@ -94,9 +250,12 @@ impl Sinks {
                     frame,
                 };
                 if let Err(e) = w.write(&entry) {
-                    self.error = Some(CliError::File {
-                        path: "candump log".into(),
-                        message: e.to_string(),
+                    self.error = Some(CliError::Recording {
+                        path: target.display().to_string(),
+                        source: Box::new(CliError::File {
+                            path: target.display().to_string(),
+                            message: e.to_string(),
+                        }),
                     });
                     return;
                 }
@@ -104,51 +263,118 @@ impl Sinks {
         }
     }
 
-    /// Closes the outputs; returns the summary and, when recording, messages per topic.
+    /// Closes the outputs (renaming each onto its target) and makes the plots; returns the
+    /// summary, the messages per recorded topic, and the error that stopped the recording
+    /// (the files written up to it are finished and kept).
     pub(crate) fn finish(
         mut self,
-        common: &CommonRun,
-        scenario: &str,
-    ) -> Result<(RunSummary, Option<BTreeMap<String, u64>>), CliError> {
-        if let Some(e) = self.error.take() {
-            return Err(e);
-        }
-        if let Some(mut w) = self.candump.take() {
-            w.flush().map_err(|e| CliError::File {
-                path: "candump log".into(),
-                message: e.to_string(),
-            })?;
+        quiet: bool,
+    ) -> (RunSummary, Option<BTreeMap<String, u64>>, Option<CliError>) {
+        let mut err = self.error.take();
+        if let Some((mut w, tmp, target)) = self.candump.take() {
+            let r = w
+                .flush()
+                .map_err(|e| CliError::File {
+                    path: target.display().to_string(),
+                    message: e.to_string(),
+                })
+                .and_then(|()| rename(&tmp, &target));
+            if let Err(e) = r {
+                err.get_or_insert(e);
+            }
         }
         let mut recorded = None;
-        if let Some(m) = self.mcap.take() {
-            let s = m.finish()?;
-            let total: u64 = s.messages.values().sum();
-            if !common.json {
-                eprintln!("recorded {total} messages on {} topics", s.messages.len());
-            }
-            recorded = Some(s.messages);
-        }
-        if let Some(dir) = &common.plots {
-            let path = common
-                .record
-                .clone()
-                .unwrap_or_else(|| dir.join(format!("{scenario}.mcap")));
-            let rep = rollbase::plot::plot_recording(&path, dir)?;
-            if !common.json {
-                for f in &rep.files {
-                    eprintln!("plot: {}", f.display());
+        if let Some((m, tmp, target)) = self.mcap.take() {
+            match m.finish() {
+                Ok(s) => {
+                    let total: u64 = s.messages.values().sum();
+                    match rename(&tmp, &target) {
+                        Ok(()) => {
+                            if !quiet {
+                                errln!(
+                                    "recorded {total} messages on {} topics to {}",
+                                    s.messages.len(),
+                                    target.display()
+                                );
+                            }
+                            recorded = Some(s.messages);
+                        }
+                        Err(e) => {
+                            err.get_or_insert(e);
+                        }
+                    }
+                }
+                Err(e) => {
+                    let _ = std::fs::remove_file(&tmp);
+                    err.get_or_insert(CliError::Recording {
+                        path: target.display().to_string(),
+                        source: Box::new(e.into()),
+                    });
                 }
             }
         }
-        Ok((self.summary, recorded))
+        if let (Some(dir), Some(path), None) = (&self.plan.plots, &self.plan.record, &err) {
+            match rollbase::plot::plot_recording(path, dir) {
+                Ok(rep) => {
+                    if !quiet {
+                        for f in &rep.files {
+                            errln!("plot: {}", f.display());
+                        }
+                    }
+                }
+                Err(e) => {
+                    err.get_or_insert(e.into());
+                }
+            }
+        }
+        (self.summary, recorded, err)
     }
 }
 
-pub(crate) fn exit_code(s: &RunSummary) -> i32 {
-    if s.final_state == "stopped" {
-        0
+fn rename(tmp: &Path, target: &Path) -> Result<(), CliError> {
+    std::fs::rename(tmp, target).map_err(|e| CliError::File {
+        path: target.display().to_string(),
+        message: format!(
+            "finished, but could not be renamed from {}: {e}",
+            tmp.display()
+        ),
+    })
+}
+
+/// What a run's end means for its exit code (README "Exit codes").
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Ending {
+    /// Ran to its end: the trajectory completed, or the service stopped on request.
+    Completed,
+    /// A trajectory run stopped early on SIGINT or SIGTERM (controlled stop).
+    Interrupted,
+}
+
+/// Exit codes (README "Exit codes").
+pub(crate) mod exit {
+    /// Completed: trajectory done and stopped, or the service stopped on request.
+    pub const OK: i32 = 0;
+    /// The run ended in a fault (latched), or did not arrive.
+    pub const FAULT: i32 = 1;
+    /// Refused before starting, or failed to run (bad input, file, bus).
+    pub const REFUSED: i32 = 2;
+    /// A trajectory run was interrupted by SIGINT or SIGTERM (controlled stop, outputs kept).
+    pub const INTERRUPTED: i32 = 3;
+    /// The recording or candump log failed during the run (controlled stop, cause printed).
+    pub const RECORDING: i32 = 4;
+}
+
+pub(crate) fn exit_code(s: &RunSummary, ending: Ending, record_error: bool) -> i32 {
+    if record_error {
+        exit::RECORDING
+    } else if s.final_state == "fault" {
+        exit::FAULT
+    } else if ending == Ending::Interrupted {
+        exit::INTERRUPTED
+    } else if s.final_state == "stopped" || s.final_state == "idle" {
+        exit::OK
     } else {
-        1
+        exit::FAULT
     }
 }
 
@@ -164,7 +390,7 @@ pub(crate) fn print_summary(
             // Messages per MCAP topic, to check a recording against its run.
             j["recorded_messages"] = serde_json::json!(r);
         }
-        println!("{j}");
+        outln!("{j}");
         return;
     }
     let j = s.to_json();
@@ -173,27 +399,33 @@ pub(crate) fn print_summary(
             .as_f64()
             .map(|x| format!("{:.3}", x * scale))
             .unwrap_or_else(|| "-".into());
-        println!("  {k:<28} {v:>12} {unit}");
+        outln!("  {k:<28} {v:>12} {unit}");
     };
-    println!(
+    outln!(
         "summary ({} — errors against {}):",
         s.scenario,
         j["errors_against"].as_str().unwrap_or("?")
     );
-    println!("  {:<28} {:>12}", "cycles", s.cycles);
-    println!("  {:<28} {:>12}", "deadline_misses", s.deadline_misses);
+    outln!("  {:<28} {:>12}", "cycles", s.cycles);
+    outln!("  {:<28} {:>12}", "deadline_misses", s.deadline_misses);
     row("max_position_error_m", "mm", 1e3);
     row("final_position_error_m", "mm", 1e3);
     row("max_heading_error_rad", "deg", 180.0 / std::f64::consts::PI);
     row("max_leg_error_m", "mm", 1e3);
+    row("max_direction_error_deg", "deg", 1.0);
     row("max_wheel_speed_rad_s", "rad/s", 1.0);
+    row("max_wheel_accel_rad_s2", "rad/s²", 1.0);
     row("max_steer_rate_rad_s", "rad/s", 1.0);
+    row("max_steer_accel_rad_s2", "rad/s²", 1.0);
     row("min_icr_wheel_distance_m", "m", 1.0);
+    row("stop_time_s", "s", 1.0);
     row("cycle_period_p99_us", "µs", 1.0);
     row("compute_time_p99_us", "µs", 1.0);
-    println!("  {:<28} {:>12}", "rejected_frames", s.rejected_frames);
-    println!("  {:<28} {:>12}", "supervisor_final_state", s.final_state);
+    outln!("  {:<28} {:>12}", "rejected_frames", s.rejected_frames);
+    outln!("  {:<28} {:>12}", "command_timeouts", s.command_timeouts);
+    outln!("  {:<28} {:>12}", "rejected_commands", s.rejected_commands);
+    outln!("  {:<28} {:>12}", "supervisor_final_state", s.final_state);
     if let Some(r) = reason {
-        println!("  fault: {r}");
+        outln!("  fault: {r}");
     }
 }

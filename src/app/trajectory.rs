@@ -2,21 +2,22 @@
 
 use clap::Args;
 use rollbase_control::record::CycleRecord;
-use rollbase_control::runtime::{
-    run_lockstep, run_realtime, CycleCore, RealtimeOptions, VirtualLockstepBus,
-};
+use rollbase_control::runtime::{run_lockstep_with, CycleCore, VirtualLockstepBus};
 use rollbase_control::scenario::{self, Scenario};
 use rollbase_driver::bus::{self as bus, CanBus};
 use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};
 use std::collections::BTreeMap;
 use std::io::IsTerminal;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::sinks::{exit_code, print_summary, Sinks};
-use super::{install_ctrl_c, load_platform_as, runtime_config, unix_now, CliError, CommonRun};
+use super::rt::{print_report, run_cycle, wall_bus, Ports, SimThread};
+use super::sinks::{exit_code, print_summary, Ending, OutputPlan, Sinks};
+use super::{
+    install_signals, load_platform_as, runtime_config, unix_now, CliError, CommonRun, SignalAction,
+};
 
 #[derive(Args, Debug)]
 pub(crate) struct DemoArgs {
@@ -35,6 +36,14 @@ pub(crate) struct DemoArgs {
     /// Simulator plant parameters (TOML).
     #[arg(long)]
     pub(crate) plant: Option<PathBuf>,
+    /// Follow live motion commands from this JSON Lines file (`-`: stdin) instead of a
+    /// scenario: the base service with the simulator in-process (see `rollbase drive`).
+    #[arg(long, value_name = "FILE", conflicts_with = "teleop")]
+    pub(crate) commands: Option<PathBuf>,
+    /// Drive the simulated platform from the keyboard in real time (arrows/WASD translate,
+    /// Q/E rotate, +/- legs out/in, space stops, R re-arms, Esc or Ctrl-C quits).
+    #[arg(long, conflicts_with = "lockstep")]
+    pub(crate) teleop: bool,
     #[command(flatten)]
     pub(crate) common: CommonRun,
 }
@@ -47,14 +56,19 @@ pub(crate) struct RunArgs {
     /// Trajectory: a waypoint file (TOML) or `scenario:NAME` (scenario:seed000, scenario:seed001).
     #[arg(long)]
     pub(crate) trajectory: String,
-    /// Stop after this many seconds (a controlled stop), e.g. to shorten a scenario.
-    #[arg(long)]
+    /// Stop after this many seconds (a controlled stop), e.g. to shorten a scenario
+    /// (0 < S ≤ 1e6).
+    #[arg(long, value_name = "S")]
     pub(crate) duration: Option<f64>,
     #[command(flatten)]
     pub(crate) common: CommonRun,
 }
 
 pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
+    if a.commands.is_some() || a.teleop {
+        return super::service::demo_live(a);
+    }
+    // Everything is validated before anything is created or started.
     let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
     let sc: Scenario = a.scenario.parse()?;
     let traj = scenario::trajectory(sc, &platform)?;
@@ -68,8 +82,11 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
         Some(p) => PlantConfig::load(p)?,
         None => PlantConfig::default(),
     };
+    let plan = OutputPlan::of(&a.common, sc.name());
+    plan.check()?;
     let r0 = traj.sample(0.0);
     let mut core = CycleCore::new(platform.clone(), traj, cfg)?;
+    let sim = Simulator::new(&platform, plant_cfg, faults, &r0, a.seed)?;
     let mut meta = BTreeMap::new();
     meta.insert("scenario".into(), sc.name().to_string());
     meta.insert(
@@ -82,11 +99,13 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
         format!("{:?}", cfg_controller(&a.common, sc)),
     );
     let origin = if a.lockstep { 0.0 } else { unix_now() };
-    let mut sinks = Sinks::new(sc.name(), &a.common, "vcan0", origin, meta)?;
-    let mut sim = Simulator::new(&platform, plant_cfg, faults, &r0, a.seed)?;
+    let quiet = a.common.json;
+    let stop = Arc::new(AtomicBool::new(false));
+    let signalled = install_signals(stop.clone(), SignalAction::ControlledStop);
+    let mut sinks = Sinks::new(sc.name(), &plan, "vcan0", origin, meta)?;
     let max_cycles = ((duration + 20.0) * platform.cycle_hz) as u64;
-    if !a.common.json {
-        eprintln!(
+    if !quiet {
+        errln!(
             "demo: scenario {} ({:.1} s), controller {}, {} on the in-process bus",
             sc.name(),
             duration,
@@ -95,36 +114,96 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
         );
     }
     if a.lockstep {
-        let mut vbus = VirtualLockstepBus::new(Default::default(), a.seed);
-        let rep = run_lockstep(
+        run_demo_lockstep(
             &mut core,
-            &mut vbus,
-            &mut sim,
+            sim,
+            &mut sinks,
+            &stop,
+            &[],
             max_cycles,
-            None,
-            &mut |r, w| sinks.take(r, w),
+            a.seed,
+            quiet,
         );
-        sinks.summary.compute_us = rep.compute_us.clone();
-        if !a.common.json {
-            eprintln!(
-                "lockstep: {} cycles ({:.1} s of platform time) in {:.2} s wall, {:.0}× real time",
-                rep.cycles,
-                rep.cycles as f64 * platform.dt(),
-                rep.wall_s,
-                rep.cycles as f64 * platform.dt() / rep.wall_s.max(1e-9)
-            );
-        }
     } else {
-        run_demo_realtime(&mut core, sim, &mut sinks, duration, a.common.json)?;
+        run_demo_realtime(&mut core, sim, &mut sinks, &stop, duration, quiet)?;
     }
-    let (summary, recorded) = sinks.finish(&a.common, sc.name())?;
+    finish(sinks, &core, &a.common, signalled.load(Ordering::SeqCst))
+}
+
+/// Finishes a run's outputs, prints its summary (and the recording's failure, if any), and
+/// returns the exit code (README "Exit codes").
+pub(crate) fn finish(
+    sinks: Sinks,
+    core: &CycleCore,
+    common: &CommonRun,
+    interrupted: bool,
+) -> Result<i32, CliError> {
+    let (summary, recorded, err) = sinks.finish(common.json);
     print_summary(
         &summary,
-        a.common.json,
+        common.json,
         core.supervisor().reason(),
         recorded.as_ref(),
     );
-    Ok(exit_code(&summary))
+    if let Some(e) = &err {
+        errln!("error: {e}");
+        let mut src = std::error::Error::source(e);
+        while let Some(s) = src {
+            errln!("  caused by: {s}");
+            src = s.source();
+        }
+    }
+    let ending = if interrupted && !core.is_live() {
+        Ending::Interrupted
+    } else {
+        Ending::Completed
+    };
+    Ok(exit_code(&summary, ending, err.is_some()))
+}
+
+/// The demo on virtual time: stops (in a controlled way) on a signal or a failed recording.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn run_demo_lockstep(
+    core: &mut CycleCore,
+    mut sim: Simulator,
+    sinks: &mut Sinks,
+    stop: &AtomicBool,
+    commands: &[rollbase_control::ports::CommandEvent],
+    max_cycles: u64,
+    seed: u64,
+    quiet: bool,
+) {
+    let dt = core.platform().dt();
+    let mut vbus = VirtualLockstepBus::new(Default::default(), seed);
+    let failed = std::cell::Cell::new(false);
+    let rep = run_lockstep_with(
+        core,
+        &mut vbus,
+        &mut sim,
+        commands,
+        max_cycles,
+        // A signal or a failed recording: controlled stop.
+        &mut |_| stop.load(Ordering::SeqCst) || failed.get(),
+        &mut |r: &CycleRecord, w: &[[f64; 2]]| {
+            sinks.take(r, w);
+            if sinks.failed() {
+                failed.set(true);
+            }
+        },
+    );
+    if let Some(e) = sinks.error() {
+        tracing::error!("{e}: {}", super::rt::error_chain(e));
+    }
+    sinks.summary.compute_us = rep.compute_us.clone();
+    if !quiet {
+        errln!(
+            "lockstep: {} cycles ({:.1} s of platform time) in {:.2} s wall, {:.0}× real time",
+            rep.cycles,
+            rep.cycles as f64 * dt,
+            rep.wall_s,
+            rep.cycles as f64 * dt / rep.wall_s.max(1e-9)
+        );
+    }
 }
 
 pub(crate) fn cfg_controller(
@@ -138,168 +217,99 @@ pub(crate) fn cfg_controller(
 
 pub(crate) fn run_demo_realtime(
     core: &mut CycleCore,
-    mut sim: Simulator,
+    sim: Simulator,
     sinks: &mut Sinks,
+    stop: &Arc<AtomicBool>,
     duration: f64,
-    json: bool,
+    quiet: bool,
 ) -> Result<(), CliError> {
-    use rollbase_driver::bus::{BusClock, VirtualBus, VirtualBusConfig};
-    let vbus = VirtualBus::new(VirtualBusConfig {
-        clock: BusClock::Wall,
-        ..Default::default()
-    });
-    let mut ctrl_node = vbus.node("controller");
-    let mut sim_node = vbus.node("simulator");
-    let stop = Arc::new(AtomicBool::new(false));
-    let sim_stop = Arc::new(AtomicBool::new(false));
-    install_ctrl_c(stop.clone());
-    let sim_thread = {
-        let sim_stop = sim_stop.clone();
-        std::thread::Builder::new()
-            .name("rollbase-sim".into())
-            .spawn(move || {
-                // The simulated modules stand in for hardware, which never waits for the
-                // controller's process: give them real-time priority too (one above the cycle
-                // thread's), so a loaded machine delays neither side.
-                let _ = rollbase_control::runtime::realtime_setup(&RealtimeOptions {
-                    fifo_priority: Some(81),
-                    lock_memory: false,
-                    max_cycles: None,
-                });
-                sim.run_realtime(&mut sim_node, &sim_stop)
-            })
-            .map_err(|e| CliError::Usage(format!("cannot start the simulator thread: {e}")))?
-    };
-    let (tx, rx) = std::sync::mpsc::sync_channel::<CycleRecord>(2048);
-    let progress = Arc::new(AtomicU64::new(0));
-    let opts = RealtimeOptions::default();
-    let origin_ns = (sinks.time_origin * 1e9) as u64;
-    let report = std::thread::scope(|s| {
-        let prog = progress.clone();
-        let cycle = s.spawn(|| {
-            let r = run_realtime(core, &mut ctrl_node, &stop, Some(&tx), &opts, origin_ns);
-            drop(tx);
-            r
-        });
-        let show = !json && std::io::stderr().is_terminal();
-        let mut last_print = std::time::Instant::now();
-        loop {
-            match rx.recv_timeout(Duration::from_millis(100)) {
-                Ok(r) => {
-                    prog.store(r.cycle, Ordering::Relaxed);
-                    sinks.take(&r, &r.wheel_xy[..r.n]);
-                    if show && last_print.elapsed() > Duration::from_millis(200) {
-                        last_print = std::time::Instant::now();
-                        let t = r.reference.t;
-                        let frac = (t / duration.max(1e-9)).clamp(0.0, 1.0);
-                        let bars = (frac * 30.0) as usize;
-                        eprint!(
-                            "\r[{}{}] {:5.1}/{:.1} s  {:<9} pos err {:6.2} mm   ",
-                            "#".repeat(bars),
-                            ".".repeat(30 - bars),
-                            t,
-                            duration,
-                            r.state.name(),
-                            sinks.summary.max_position_error_m * 1e3
-                        );
-                    }
-                }
-                Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
-                Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
+    let (mut ctrl_node, sim_node) = wall_bus();
+    let _sim = SimThread::start(sim, sim_node)?;
+    let show = !quiet && std::io::stderr().is_terminal();
+    let mut last_print = std::time::Instant::now();
+    let origin = sinks.time_origin;
+    let report = run_cycle(
+        core,
+        &mut ctrl_node,
+        sinks,
+        stop,
+        Ports::default(),
+        origin,
+        &mut |r, sinks| {
+            if show && last_print.elapsed() > Duration::from_millis(200) {
+                last_print = std::time::Instant::now();
+                let t = r.reference.t;
+                let frac = (t / duration.max(1e-9)).clamp(0.0, 1.0);
+                let bars = (frac * 30.0) as usize;
+                err!(
+                    "\r[{}{}] {:5.1}/{:.1} s  {:<9} pos err {:6.2} mm   ",
+                    "#".repeat(bars),
+                    ".".repeat(30 - bars),
+                    t,
+                    duration,
+                    r.state.name(),
+                    sinks.summary.max_position_error_m * 1e3
+                );
             }
-        }
-        if show {
-            eprintln!();
-        }
-        cycle.join()
-    });
-    sim_stop.store(true, Ordering::SeqCst);
-    let _ = sim_thread.join();
-    let report = report.map_err(|_| CliError::Usage("the cycle thread panicked".into()))?;
-    if !json {
-        for line in &report.setup {
-            eprintln!("runtime: {line}");
-        }
-        eprintln!(
-            "runtime: {} cycles, {} deadline misses, {} records dropped",
-            report.cycles, report.deadline_misses, report.records_dropped
-        );
+        },
+    )?;
+    if show {
+        errln!();
     }
-    sinks.summary.deadline_misses = sinks.summary.deadline_misses.max(report.deadline_misses);
+    print_report(&report, quiet);
     Ok(())
 }
 
+/// Largest `--duration` (s).
+const MAX_DURATION_S: f64 = 1e6;
+
 pub(crate) fn run_bus(a: RunArgs) -> Result<i32, CliError> {
+    // Everything is validated before the bus is opened or a file created.
+    if let Some(d) = a.duration {
+        if !(d.is_finite() && d > 0.0 && d <= MAX_DURATION_S) {
+            return Err(CliError::Usage(format!(
+                "--duration {d}: must be a number of seconds in (0, {MAX_DURATION_S}]"
+            )));
+        }
+    }
     let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
     let (traj, sc) = scenario::trajectory_arg(&a.trajectory, &platform)?;
     let duration = traj.duration();
     let cfg = runtime_config(&a.common, sc)?;
-    let mut core = CycleCore::new(platform.clone(), traj, cfg)?;
-    // Open the bus only after everything else validated: nothing starts on bad input.
-    let mut canbus = bus::open(&a.bus)?;
     let name = sc
         .map(|s| s.name().to_string())
         .unwrap_or_else(|| "trajectory".into());
+    let plan = OutputPlan::of(&a.common, &name);
+    plan.check()?;
+    let mut core = CycleCore::new(platform.clone(), traj, cfg)?;
+    let mut canbus = bus::open(&a.bus)?;
     let origin = unix_now();
     let mut meta = BTreeMap::new();
     meta.insert("bus".into(), a.bus.clone());
     meta.insert("trajectory".into(), a.trajectory.clone());
-    // The interface name as candump logs it ("vcan0", also for socketcand://HOST:PORT/vcan0).
-    let mut sinks = Sinks::new(&name, &a.common, canbus.name(), origin, meta)?;
     let stop = Arc::new(AtomicBool::new(false));
-    install_ctrl_c(stop.clone());
+    let signalled = install_signals(stop.clone(), SignalAction::ControlledStop);
+    // The interface name as candump logs it ("vcan0", also for socketcand://HOST:PORT/vcan0).
+    let mut sinks = Sinks::new(&name, &plan, canbus.name(), origin, meta)?;
     if let Some(d) = a.duration {
-        if !(d.is_finite() && d > 0.0) {
-            return Err(CliError::Usage(format!(
-                "--duration {d}: must be a positive number of seconds"
-            )));
-        }
         let stop = stop.clone();
         std::thread::spawn(move || {
             std::thread::sleep(Duration::from_secs_f64(d));
             stop.store(true, Ordering::SeqCst);
         });
     }
-    let (tx, rx) = std::sync::mpsc::sync_channel::<CycleRecord>(2048);
-    let opts = RealtimeOptions::default();
     if !a.common.json {
-        eprintln!("run: {} on {} ({:.1} s)", name, a.bus, duration);
+        errln!("run: {} on {} ({:.1} s)", name, a.bus, duration);
     }
-    let report = std::thread::scope(|s| {
-        let cycle = s.spawn(|| {
-            let r = run_realtime(
-                &mut core,
-                canbus.as_mut(),
-                &stop,
-                Some(&tx),
-                &opts,
-                (origin * 1e9) as u64,
-            );
-            drop(tx);
-            r
-        });
-        while let Ok(r) = rx.recv() {
-            sinks.take(&r, &r.wheel_xy[..r.n]);
-        }
-        cycle.join()
-    });
-    let report = report.map_err(|_| CliError::Usage("the cycle thread panicked".into()))?;
-    if !a.common.json {
-        for line in &report.setup {
-            eprintln!("runtime: {line}");
-        }
-        eprintln!(
-            "runtime: {} cycles, {} deadline misses, {} records dropped, {} bus errors",
-            report.cycles, report.deadline_misses, report.records_dropped, report.bus_errors
-        );
-    }
-    sinks.summary.deadline_misses = sinks.summary.deadline_misses.max(report.deadline_misses);
-    let (summary, recorded) = sinks.finish(&a.common, &name)?;
-    print_summary(
-        &summary,
-        a.common.json,
-        core.supervisor().reason(),
-        recorded.as_ref(),
-    );
-    Ok(exit_code(&summary))
+    let report = run_cycle(
+        &mut core,
+        canbus.as_mut(),
+        &mut sinks,
+        &stop,
+        Ports::default(),
+        origin,
+        &mut |_, _| {},
+    )?;
+    print_report(&report, a.common.json);
+    finish(sinks, &core, &a.common, signalled.load(Ordering::SeqCst))
 }

@@ -532,6 +532,7 @@ impl CycleCore {
             let accept = |l: &mut LiveSource, r: Result<(), Rejection>| match r {
                 Err(e) => {
                     l.stats.rejected += 1;
+                    l.stats.last_rejection = Some(e);
                     l.last_rejection = Some(e);
                     false
                 }

@@ -288,41 +288,15 @@ pub fn run_lockstep(
     stop_at_cycle: Option<u64>,
     sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
 ) -> LockstepReport {
-    let mut report = LockstepReport {
-        compute_us: Vec::with_capacity(max_cycles.min(1 << 20) as usize),
-        ..Default::default()
-    };
-    let wall = std::time::Instant::now();
-    let mut st = LockstepState::new(core);
-    core.arm();
-    for k in 0..max_cycles {
-        if Some(k) == stop_at_cycle {
-            core.request_stop();
-        }
-        // Wall-clock time spent inside the core, for reports only (never recorded).
-        let mut spent = Duration::ZERO;
-        let mut entered = std::time::Instant::now();
-        let mut timer = |on: bool| {
-            if on {
-                entered = std::time::Instant::now();
-            } else {
-                spent += entered.elapsed();
-            }
-        };
-        let mut hooks = StepHooks {
-            around_core: Some(&mut timer),
-            ..Default::default()
-        };
-        lockstep_cycle(&mut st, core, bus, peer, &mut hooks);
-        report.compute_us.push(spent.as_secs_f64() * 1e6);
-        sink(core.record(), core.wheel_xy());
-        report.cycles = k + 1;
-        if core.done() {
-            break;
-        }
-    }
-    report.wall_s = wall.elapsed().as_secs_f64();
-    report
+    run_lockstep_with(
+        core,
+        bus,
+        peer,
+        &[],
+        max_cycles,
+        &mut |k| Some(k) == stop_at_cycle,
+        sink,
+    )
 }
 
 /// Runs the base service on virtual time: the core follows `commands` (sorted by time; each
@@ -339,6 +313,21 @@ pub fn run_lockstep_live(
     max_cycles: u64,
     sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
 ) -> LockstepReport {
+    run_lockstep_with(core, bus, peer, commands, max_cycles, &mut |_| false, sink)
+}
+
+/// The lockstep driver behind [`run_lockstep`] and [`run_lockstep_live`]: `commands` as in
+/// [`run_lockstep_live`] (empty for a trajectory), and `stop(cycle)` asked before every cycle
+/// (true once: an operator stop, as from a signal).
+pub fn run_lockstep_with(
+    core: &mut CycleCore,
+    bus: &mut dyn LockstepBus,
+    peer: &mut dyn LockstepPeer,
+    commands: &[CommandEvent],
+    max_cycles: u64,
+    stop: &mut dyn FnMut(u64) -> bool,
+    sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
+) -> LockstepReport {
     let mut report = LockstepReport {
         compute_us: Vec::with_capacity(max_cycles.min(1 << 20) as usize),
         ..Default::default()
@@ -348,7 +337,12 @@ pub fn run_lockstep_live(
     core.arm();
     let mut ready_at: Option<f64> = None;
     let mut next = 0usize;
+    let mut stopped = false;
     for k in 0..max_cycles {
+        if !stopped && stop(k) {
+            stopped = true;
+            core.request_stop();
+        }
         let t = st.time();
         if ready_at.is_none() && core.state() == SupervisorState::Tracking {
             ready_at = Some(t);
@@ -361,6 +355,7 @@ pub fn run_lockstep_live(
                 next += 1;
             }
         }
+        // Wall-clock time spent inside the core, for reports only (never recorded).
         let mut spent = Duration::ZERO;
         let mut entered = std::time::Instant::now();
         let mut timer = |on: bool| {

@@ -1,0 +1,508 @@
+//! `rollbase drive` and the live-command demo: the base service.
+//!
+//! ```text
+//!  command sources ──► bounded channel ──► cycle thread (250 Hz) ──► records ──► recorder
+//!  (file, stdin, keyboard, ROS 2)            │                                  (this thread)
+//!                                            └──► state port (bounded) ──► status, ROS 2
+//! ```
+//!
+//! The cycle thread takes what commands are waiting without blocking and hands its state over
+//! with `try_send`; sources and consumers run on their own threads. SIGINT and SIGTERM are a
+//! controlled stop and a clean exit (recording finished); the end of a command file (or EOF
+//! on stdin) lets the command timeout stop the platform, and the run ends once it is at rest.
+
+use clap::Args;
+use rollbase::commands::{self, TimedCommand};
+use rollbase_control::ports::{BaseState, CommandEvent, CommandKind};
+use rollbase_control::record::CycleRecord;
+use rollbase_control::runtime::{CycleCore, RuntimeConfig};
+use rollbase_control::supervisor::SupervisorState;
+use rollbase_control::Platform;
+use rollbase_driver::bus::{self as bus, CanBus};
+use rollbase_vcan_sim::{FaultSchedule, PlantConfig, SimConfig, Simulator};
+use std::collections::BTreeMap;
+use std::io::{BufRead, Read};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{Receiver, SyncSender};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use super::rt::{print_report, run_cycle, wall_bus, Ports, SimThread};
+use super::sinks::{OutputPlan, Sinks};
+use super::trajectory::{finish, run_demo_lockstep, DemoArgs};
+use super::{
+    install_signals, load_platform_as, runtime_config, unix_now, CliError, CommonRun, SignalAction,
+};
+
+/// A consumer of the state port (on the state thread).
+pub(crate) type StateConsumer = Box<dyn FnMut(&BaseState) + Send>;
+
+/// Commands queued between the sources and the cycle (the cycle takes up to 64 a cycle).
+const COMMAND_QUEUE: usize = 256;
+/// State-port values queued toward the consumers (at 250 Hz: a quarter of a second).
+const STATE_QUEUE: usize = 64;
+
+#[derive(Args, Debug)]
+pub(crate) struct DriveArgs {
+    /// CAN bus: an interface (vcan0, can0) or socketcand://HOST:PORT/CHANNEL.
+    #[arg(long)]
+    pub(crate) bus: String,
+    /// Motion commands as JSON Lines from this file, or `-` for stdin (see README "Driving
+    /// the platform live"). Without it the platform holds at rest until stopped.
+    #[arg(long, value_name = "FILE|-")]
+    pub(crate) commands: Option<PathBuf>,
+    #[command(flatten)]
+    pub(crate) common: CommonRun,
+}
+
+/// Where a run's commands come from.
+pub(crate) enum Source {
+    /// None: the platform holds (commands may come from elsewhere, e.g. ROS 2).
+    None,
+    /// A command file, read whole and checked before the run starts.
+    File(Vec<TimedCommand>),
+    /// Lines on stdin, as they come.
+    Stdin,
+    /// The keyboard (teleop).
+    Keyboard,
+}
+
+impl Source {
+    /// `--commands FILE|-` (files are read and checked now).
+    pub(crate) fn from_arg(arg: Option<&Path>) -> Result<Source, CliError> {
+        Ok(match arg {
+            None => Source::None,
+            Some(p) if p.as_os_str() == "-" => Source::Stdin,
+            Some(p) => Source::File(commands::load_file(p)?),
+        })
+    }
+}
+
+/// When the driver became ready (first followed commands), shared with the sources.
+#[derive(Default)]
+pub(crate) struct Ready {
+    at: Mutex<Option<Instant>>,
+}
+
+impl Ready {
+    fn set(&self) {
+        if let Ok(mut g) = self.at.lock() {
+            g.get_or_insert_with(Instant::now);
+        }
+    }
+    /// Waits until ready or `stop`; returns the instant.
+    pub(crate) fn wait(&self, stop: &AtomicBool) -> Option<Instant> {
+        loop {
+            if stop.load(Ordering::SeqCst) {
+                return None;
+            }
+            if let Ok(g) = self.at.lock() {
+                if let Some(t) = *g {
+                    return Some(t);
+                }
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+}
+
+/// Sends `kind` at `at` (sleeping until then, or giving up on `stop`); false once the cycle is
+/// gone.
+fn send_at(
+    tx: &SyncSender<CommandEvent>,
+    stop: &AtomicBool,
+    at: Instant,
+    kind: CommandKind,
+) -> bool {
+    loop {
+        if stop.load(Ordering::SeqCst) {
+            return false;
+        }
+        let now = Instant::now();
+        if now >= at {
+            break;
+        }
+        std::thread::sleep((at - now).min(Duration::from_millis(20)));
+    }
+    // The cycle stamps the event with the time it takes it.
+    match tx.try_send(CommandEvent { t: 0.0, kind }) {
+        Ok(()) => true,
+        Err(std::sync::mpsc::TrySendError::Full(_)) => {
+            tracing::warn!("command queue full ({COMMAND_QUEUE}): a command was dropped");
+            true
+        }
+        Err(std::sync::mpsc::TrySendError::Disconnected(_)) => false,
+    }
+}
+
+/// Starts the thread of a command source (none for [`Source::None`]).
+pub(crate) fn start_source(
+    source: Source,
+    tx: SyncSender<CommandEvent>,
+    ready: Arc<Ready>,
+    stop: Arc<AtomicBool>,
+    platform: &Platform,
+) -> Result<(), CliError> {
+    let p = platform.clone();
+    let spawn = |name: &str, f: Box<dyn FnOnce() + Send>| {
+        std::thread::Builder::new()
+            .name(name.into())
+            .spawn(f)
+            .map(|_| ())
+            .map_err(|e| CliError::Usage(format!("cannot start the command source: {e}")))
+    };
+    match source {
+        Source::None => Ok(()),
+        Source::File(cmds) => spawn(
+            "rollbase-commands",
+            Box::new(move || {
+                let Some(t0) = ready.wait(&stop) else { return };
+                for c in cmds {
+                    let at = t0 + Duration::from_secs_f64(c.t.unwrap_or(0.0));
+                    if !send_at(&tx, &stop, at, c.kind) {
+                        return;
+                    }
+                }
+                tracing::info!("end of the command file: the command timeout stops the platform, then the run ends");
+                let _ = tx.send(CommandEvent {
+                    t: 0.0,
+                    kind: CommandKind::EndOfStream,
+                });
+            }),
+        ),
+        Source::Stdin => spawn(
+            "rollbase-stdin",
+            Box::new(move || {
+                let Some(t0) = ready.wait(&stop) else { return };
+                let stdin = std::io::stdin();
+                let mut lock = stdin.lock();
+                let mut buf = Vec::new();
+                let mut line = 0usize;
+                loop {
+                    buf.clear();
+                    let r = (&mut lock)
+                        .take(commands::MAX_LINE_BYTES as u64 + 2)
+                        .read_until(b'\n', &mut buf);
+                    match r {
+                        Ok(0) => break,
+                        Ok(_) => {}
+                        Err(e) => {
+                            tracing::error!("stdin: {e}; treating it as the end of the stream");
+                            break;
+                        }
+                    }
+                    line += 1;
+                    if buf.len() > commands::MAX_LINE_BYTES + 1 && !buf.ends_with(b"\n") {
+                        tracing::warn!(
+                            "stdin line {line}: longer than {} bytes; skipped",
+                            commands::MAX_LINE_BYTES
+                        );
+                        // Skip the rest of the overlong line.
+                        let mut rest = Vec::new();
+                        let _ = lock.read_until(b'\n', &mut rest);
+                        continue;
+                    }
+                    let Ok(text) = std::str::from_utf8(&buf) else {
+                        tracing::warn!("stdin line {line}: not UTF-8 text; skipped");
+                        continue;
+                    };
+                    match commands::parse_line(text, "stdin", line) {
+                        Ok(Some(c)) => {
+                            let at = match c.t {
+                                Some(t) => t0 + Duration::from_secs_f64(t),
+                                None => Instant::now(),
+                            };
+                            if !send_at(&tx, &stop, at, c.kind) {
+                                return;
+                            }
+                        }
+                        Ok(None) => {}
+                        Err(e) => tracing::warn!("{e}; skipped"),
+                    }
+                }
+                tracing::info!(
+                    "end of stdin: the command timeout stops the platform, then the run ends"
+                );
+                let _ = tx.send(CommandEvent {
+                    t: 0.0,
+                    kind: CommandKind::EndOfStream,
+                });
+            }),
+        ),
+        Source::Keyboard => super::teleop::start(tx, ready, stop, &p),
+    }
+}
+
+/// Logs what a service operator needs to know, from the records: state changes with their
+/// reasons, command timeouts and rejections, what limits the motion.
+pub(crate) struct StatusLog {
+    state: Option<SupervisorState>,
+    timeouts: u64,
+    rejected: u64,
+    limiting: rollbase_control::ports::Limiting,
+    last_limit_log: Option<Instant>,
+}
+
+impl StatusLog {
+    pub(crate) fn new() -> Self {
+        Self {
+            state: None,
+            timeouts: 0,
+            rejected: 0,
+            limiting: Default::default(),
+            last_limit_log: None,
+        }
+    }
+
+    pub(crate) fn take(&mut self, r: &CycleRecord) {
+        if self.state != Some(r.state) {
+            match (r.state, r.reason) {
+                (SupervisorState::Fault, Some(reason)) => {
+                    tracing::error!("fault: {reason}; controlled stop, latched until re-armed")
+                }
+                (s, _) => tracing::info!("state: {}", s.name()),
+            }
+            self.state = Some(r.state);
+        }
+        let c = &r.commands;
+        if c.timeouts > self.timeouts {
+            tracing::warn!("no valid command for the command timeout: stopping (steering held); the next command resumes");
+            self.timeouts = c.timeouts;
+        }
+        if c.rejected > self.rejected {
+            match c.last_rejection {
+                Some(e) => tracing::warn!("command rejected: {e}"),
+                None => tracing::warn!("command rejected"),
+            }
+            self.rejected = c.rejected;
+        }
+        use rollbase_control::ports::Limiting;
+        let l = r.shaping.limiting;
+        if l != self.limiting {
+            let quiet_for = self
+                .last_limit_log
+                .is_none_or(|t| t.elapsed() > Duration::from_secs(2));
+            if l != Limiting::None && l != Limiting::Timeout && quiet_for {
+                tracing::debug!(
+                    "slowing: {} (command scaled by {:.2})",
+                    l.name(),
+                    r.shaping.scale
+                );
+                self.last_limit_log = Some(Instant::now());
+            }
+            self.limiting = l;
+        }
+    }
+}
+
+/// Everything the real-time base service needs besides its bus.
+struct Service {
+    core: CycleCore,
+    sinks: Sinks,
+    stop: Arc<AtomicBool>,
+    signalled: Arc<AtomicBool>,
+    origin: f64,
+}
+
+/// The real-time base service on `canbus`: sources → cycle → records and state.
+fn serve(
+    s: &mut Service,
+    canbus: &mut dyn CanBus,
+    source: Source,
+    common: &CommonRun,
+    on_state: Option<StateConsumer>,
+) -> Result<(), CliError> {
+    let (cmd_tx, cmd_rx): (SyncSender<CommandEvent>, Receiver<CommandEvent>) =
+        std::sync::mpsc::sync_channel(COMMAND_QUEUE);
+    let (state_tx, state_rx) = std::sync::mpsc::sync_channel::<BaseState>(STATE_QUEUE);
+    let ready = Arc::new(Ready::default());
+    let platform = s.core.platform().clone();
+    start_source(
+        source,
+        cmd_tx.clone(),
+        ready.clone(),
+        s.stop.clone(),
+        &platform,
+    )?;
+    // The state port's consumer: readiness for the sources, then whoever listens.
+    let consumer = {
+        let ready = ready.clone();
+        let mut on_state = on_state;
+        std::thread::Builder::new()
+            .name("rollbase-state".into())
+            .spawn(move || {
+                while let Ok(st) = state_rx.recv() {
+                    if st.state == SupervisorState::Tracking {
+                        ready.set();
+                    }
+                    if let Some(f) = on_state.as_mut() {
+                        f(&st);
+                    }
+                }
+            })
+            .map_err(|e| CliError::Usage(format!("cannot start the state consumer: {e}")))?
+    };
+    let mut status = StatusLog::new();
+    tracing::info!(
+        "driving on {} ({} wheels, {} profile, {} Hz): following commands once armed; SIGINT or SIGTERM stops",
+        canbus.name(),
+        platform.n(),
+        platform.protocol,
+        platform.cycle_hz
+    );
+    let report = run_cycle(
+        &mut s.core,
+        canbus,
+        &mut s.sinks,
+        &s.stop,
+        Ports {
+            commands: Some(cmd_rx),
+            states: Some(&state_tx),
+        },
+        s.origin,
+        &mut |r, _| status.take(r),
+    )?;
+    drop(state_tx);
+    drop(cmd_tx);
+    let _ = consumer.join();
+    print_report(&report, common.json);
+    Ok(())
+}
+
+/// `rollbase drive`.
+pub(crate) fn drive(a: DriveArgs) -> Result<i32, CliError> {
+    // Everything is validated before the bus is opened or a file created.
+    let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
+    let cfg = runtime_config(&a.common, None)?;
+    let source = Source::from_arg(a.commands.as_deref())?;
+    let plan = OutputPlan::of(&a.common, "drive");
+    plan.check()?;
+    let core = CycleCore::new_live(platform, cfg)?;
+    let mut canbus = bus::open(&a.bus)?;
+    let origin = unix_now();
+    let stop = Arc::new(AtomicBool::new(false));
+    let signalled = install_signals(stop.clone(), SignalAction::ControlledStop);
+    let mut meta = BTreeMap::new();
+    meta.insert("bus".into(), a.bus.clone());
+    meta.insert("mode".into(), "drive".into());
+    let sinks = Sinks::new("drive", &plan, canbus.name(), origin, meta)?;
+    let mut s = Service {
+        core,
+        sinks,
+        stop,
+        signalled,
+        origin,
+    };
+    serve(&mut s, canbus.as_mut(), source, &a.common, None)?;
+    finish(
+        s.sinks,
+        &s.core,
+        &a.common,
+        s.signalled.load(Ordering::SeqCst),
+    )
+}
+
+/// `rollbase demo --commands FILE|-` and `rollbase demo --teleop`: the base service with the
+/// simulated platform in-process, starting at rest (legs nominal).
+pub(crate) fn demo_live(a: DemoArgs) -> Result<i32, CliError> {
+    let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
+    let cfg: RuntimeConfig = runtime_config(&a.common, None)?;
+    let source = if a.teleop {
+        Source::Keyboard
+    } else {
+        Source::from_arg(a.commands.as_deref())?
+    };
+    if a.lockstep && !matches!(source, Source::File(_)) {
+        return Err(CliError::Usage(
+            "--lockstep needs --commands FILE (virtual time cannot wait for stdin or a keyboard)"
+                .into(),
+        ));
+    }
+    let faults = match &a.faults {
+        Some(p) => FaultSchedule::load(p)?,
+        None => FaultSchedule::default(),
+    };
+    let plant = match &a.plant {
+        Some(p) => PlantConfig::load(p)?,
+        None => PlantConfig::default(),
+    };
+    let name = if a.teleop { "teleop" } else { "commands" };
+    let plan = OutputPlan::of(&a.common, name);
+    plan.check()?;
+    let core = CycleCore::new_live(platform.clone(), cfg)?;
+    let sim = Simulator::with_config(
+        &platform,
+        SimConfig {
+            plant,
+            faults,
+            seed: a.seed,
+            ..SimConfig::default()
+        },
+    )?;
+    let origin = if a.lockstep { 0.0 } else { unix_now() };
+    let stop = Arc::new(AtomicBool::new(false));
+    let signalled = install_signals(stop.clone(), SignalAction::ControlledStop);
+    let mut meta = BTreeMap::new();
+    meta.insert("scenario".into(), name.into());
+    meta.insert(
+        "mode".into(),
+        if a.lockstep { "lockstep" } else { "realtime" }.into(),
+    );
+    meta.insert("seed".into(), a.seed.to_string());
+    let sinks = Sinks::new(name, &plan, "vcan0", origin, meta)?;
+    let mut s = Service {
+        core,
+        sinks,
+        stop,
+        signalled,
+        origin,
+    };
+    match (a.lockstep, source) {
+        (true, Source::File(cmds)) => {
+            let events: Vec<CommandEvent> = cmds
+                .iter()
+                .map(|c| CommandEvent {
+                    t: c.t.unwrap_or(0.0),
+                    kind: c.kind,
+                })
+                .chain(std::iter::once(CommandEvent {
+                    t: cmds.last().and_then(|c| c.t).unwrap_or(0.0),
+                    kind: CommandKind::EndOfStream,
+                }))
+                .collect();
+            let last = events.last().map_or(0.0, |e| e.t);
+            let max_cycles = ((last + 60.0) * platform.cycle_hz) as u64;
+            run_demo_lockstep(
+                &mut s.core,
+                sim,
+                &mut s.sinks,
+                &s.stop,
+                &events,
+                max_cycles,
+                a.seed,
+                a.common.json,
+            );
+        }
+        (true, _) => return Err(CliError::Usage(
+            "--lockstep needs --commands FILE (virtual time cannot wait for stdin or a keyboard)"
+                .into(),
+        )),
+        (false, source) => {
+            let (mut ctrl, sim_node) = wall_bus();
+            let _sim = SimThread::start(sim, sim_node)?;
+            let on_state: Option<StateConsumer> = if a.teleop {
+                Some(super::teleop::status_line())
+            } else {
+                None
+            };
+            serve(&mut s, &mut ctrl, source, &a.common, on_state)?;
+        }
+    }
+    finish(
+        s.sinks,
+        &s.core,
+        &a.common,
+        s.signalled.load(Ordering::SeqCst),
+    )
+}
