@@ -8,22 +8,58 @@ mod bridge;
 mod monitor_json;
 
 use clap::Parser;
+use std::io::Write as _;
+
+/// Installs the log subscriber: `tracing` events go to stderr, filtered by `RUST_LOG`
+/// (default `info`; e.g. `RUST_LOG=debug` adds one line per client event of the bridge).
+/// Writing never fails the program: the fmt layer drops lines stderr does not take (a closed
+/// pipe, a full disk) and, with `log_internal_errors(false)`, does not report that on stderr
+/// either (that report would itself fail). Calling it twice is harmless.
+pub fn init_logging() {
+    use std::io::IsTerminal as _;
+    use tracing_subscriber::EnvFilter;
+    let (filter, bad) = match EnvFilter::try_from_default_env() {
+        Ok(f) => (f, None),
+        Err(e) => (
+            EnvFilter::new("info"),
+            std::env::var("RUST_LOG").ok().map(|v| (v, e)),
+        ),
+    };
+    let installed = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
+        .with_target(false)
+        .log_internal_errors(false)
+        .try_init()
+        .is_ok();
+    if let (true, Some((value, e))) = (installed, bad) {
+        // An empty RUST_LOG is "unset", not an error worth a line.
+        if !value.trim().is_empty() {
+            tracing::warn!("RUST_LOG={value:?} is not a valid filter ({e}); logging at info");
+        }
+    }
+}
 
 fn main() {
     // Behave like a Unix filter: when stdout is closed early (`rollbase dbc | head`), end
-    // quietly instead of panicking on the failed write.
+    // quietly instead of panicking on the failed write. (`rollbase bridge` ignores SIGPIPE
+    // instead: a server must outlive whatever reads its log.)
     // SAFETY: restoring the default disposition of SIGPIPE at start-up, before any thread exists.
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
     let cli = app::Cli::parse();
+    init_logging();
     match app::run(cli) {
         Ok(code) => std::process::exit(code),
         Err(e) => {
-            eprintln!("error: {e}");
+            // Not eprintln!: it panics when stderr is closed.
+            let mut err = std::io::stderr().lock();
+            let _ = writeln!(err, "error: {e}");
             let mut src = std::error::Error::source(&e);
             while let Some(s) = src {
-                eprintln!("  caused by: {s}");
+                let _ = writeln!(err, "  caused by: {s}");
                 src = s.source();
             }
             std::process::exit(2);
