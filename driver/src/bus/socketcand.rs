@@ -196,8 +196,26 @@ pub enum ProtocolError {
     },
 }
 
+/// At most `n` characters of `s` for a message, printable ASCII only (anything else is shown
+/// as `?`): a `{:?}` of the result is at most 2n + 2 bytes, so an error reply to hostile
+/// input stays short (the `socketcand_server` fuzz target found 869-byte replies to a
+/// 256-byte element of control characters, each escaped as `\u{12}`).
 fn clip(s: &str, n: usize) -> String {
-    s.chars().take(n).collect()
+    s.chars()
+        .take(n)
+        .map(|c| {
+            if c.is_ascii_graphic() || c == ' ' {
+                c
+            } else {
+                '?'
+            }
+        })
+        .collect()
+}
+
+/// A token of a bad element, as shown in the error.
+fn tok_shown(s: &str) -> String {
+    clip(s, 24)
 }
 
 /// One protocol element, in either direction.
@@ -297,21 +315,27 @@ pub fn parse_element(element: &str) -> Result<Element, ProtocolError> {
                 .next()
                 .ok_or_else(|| bad("frame", "missing id".into()))?;
             let id = parse_hex_u32(id_s)
-                .ok_or_else(|| bad("frame", format!("id {id_s:?} is not hex")))?;
+                .ok_or_else(|| bad("frame", format!("id {:?} is not hex", tok_shown(id_s))))?;
             let ts_s = tokens
                 .next()
                 .ok_or_else(|| bad("frame", "missing timestamp".into()))?;
             let timestamp = parse_timestamp(ts_s).ok_or_else(|| {
                 bad(
                     "frame",
-                    format!("timestamp {ts_s:?} is not SECONDS.MICROSECONDS"),
+                    format!(
+                        "timestamp {:?} is not SECONDS.MICROSECONDS",
+                        tok_shown(ts_s)
+                    ),
                 )
             })?;
             let mut data = [0u8; MAX_DATA_LEN];
             let mut n = 0usize;
             for tok in tokens {
                 if tok.len() % 2 != 0 || !tok.bytes().all(|b| b.is_ascii_hexdigit()) {
-                    return Err(bad("frame", format!("data {tok:?} is not hex byte pairs")));
+                    return Err(bad(
+                        "frame",
+                        format!("data {:?} is not hex byte pairs", tok_shown(tok)),
+                    ));
                 }
                 for pair in tok.as_bytes().chunks(2) {
                     if n == MAX_DATA_LEN {
@@ -338,7 +362,7 @@ pub fn parse_element(element: &str) -> Result<Element, ProtocolError> {
                 .next()
                 .ok_or_else(|| bad("send", "missing id".into()))?;
             let id = parse_hex_u32(id_s)
-                .ok_or_else(|| bad("send", format!("id {id_s:?} is not hex")))?;
+                .ok_or_else(|| bad("send", format!("id {:?} is not hex", tok_shown(id_s))))?;
             let dlc_s = tokens
                 .next()
                 .ok_or_else(|| bad("send", "missing DLC".into()))?;
@@ -346,7 +370,7 @@ pub fn parse_element(element: &str) -> Result<Element, ProtocolError> {
                 .parse()
                 .ok()
                 .filter(|&d| d <= MAX_DATA_LEN)
-                .ok_or_else(|| bad("send", format!("DLC {dlc_s:?} is not 0..8")))?;
+                .ok_or_else(|| bad("send", format!("DLC {:?} is not 0..8", tok_shown(dlc_s))))?;
             let mut data = [0u8; MAX_DATA_LEN];
             let mut n = 0usize;
             for tok in tokens {
@@ -356,7 +380,7 @@ pub fn parse_element(element: &str) -> Result<Element, ProtocolError> {
                 if tok.is_empty() || tok.len() > 2 || !tok.bytes().all(|b| b.is_ascii_hexdigit()) {
                     return Err(bad(
                         "send",
-                        format!("data byte {tok:?} is not 1 or 2 hex digits"),
+                        format!("data byte {:?} is not 1 or 2 hex digits", tok_shown(tok)),
                     ));
                 }
                 data[n] = u8::from_str_radix(tok, 16).unwrap_or(0);
@@ -453,20 +477,12 @@ impl Framer {
         let Some(lt) = rest.iter().position(|&b| b == b'<') else {
             // Nothing but (possibly) garbage: consume it.
             let garbage = !rest.iter().all(|b| b.is_ascii_whitespace());
-            let text = String::from_utf8_lossy(rest)
-                .trim()
-                .chars()
-                .take(40)
-                .collect();
+            let text = clip(String::from_utf8_lossy(rest).trim(), 40);
             self.pos = self.buf.len();
             return garbage.then_some(Err(ProtocolError::Garbage { text }));
         };
         if !rest[..lt].iter().all(|b| b.is_ascii_whitespace()) {
-            let text = String::from_utf8_lossy(&rest[..lt])
-                .trim()
-                .chars()
-                .take(40)
-                .collect();
+            let text = clip(String::from_utf8_lossy(&rest[..lt]).trim(), 40);
             self.pos += lt;
             return Some(Err(ProtocolError::Garbage { text }));
         }
@@ -475,10 +491,10 @@ impl Framer {
         match body.iter().position(|&b| b == b'<' || b == b'>') {
             Some(i) if body[i] == b'<' => {
                 // An element that never closed: report it, resume at the next '<'.
-                let text = String::from_utf8_lossy(&self.buf[start..start + 1 + i])
-                    .chars()
-                    .take(40)
-                    .collect();
+                let text = clip(
+                    &String::from_utf8_lossy(&self.buf[start..start + 1 + i]),
+                    40,
+                );
                 self.pos = start + 1 + i;
                 Some(Err(ProtocolError::Garbage { text }))
             }
@@ -1162,6 +1178,53 @@ mod tests {
             parse_element("< add 1 0 123 0 >"),
             Ok(Element::Other("add 1 0 123 0".into()))
         );
+    }
+
+    #[test]
+    fn error_replies_to_hostile_elements_stay_short_and_printable() {
+        // Found by the socketcand_server fuzz target: a `send` element full of control
+        // characters got an 869-byte reply (each character escaped as `\u{12}`).
+        let mut bad = String::from("<\t send");
+        bad.push_str(&"\t".repeat(40));
+        bad.push_str(&"\u{12}".repeat(150));
+        bad.push_str(" 1 >");
+        let mut session = ServerSession::new();
+        session.handle(Ok(Element::Open("vcan0".into())));
+        let mut f = Framer::new();
+        f.extend(bad.as_bytes());
+        let el = f.next_element().expect("one element");
+        let step = session.handle(el.and_then(parse_element));
+        let reply = step.reply.expect("an error reply");
+        assert!(reply.starts_with("< error "), "{reply}");
+        assert!(reply.len() <= 400, "{} bytes: {reply}", reply.len());
+        assert!(
+            reply
+                .chars()
+                .all(|c| c.is_ascii_graphic() || c == ' ' || c == '`'),
+            "{reply}"
+        );
+        // Every token of every argument error is shown the same way.
+        for el in [
+            format!("< send {} 1 01 >", "\u{12}".repeat(100)),
+            format!("< send 123 {} >", "\u{12}".repeat(100)),
+            format!("< send 123 1 {} >", "\u{12}".repeat(100)),
+            format!("< frame {} 1.0 >", "\u{12}".repeat(100)),
+            format!("< frame 123 {} >", "\u{12}".repeat(100)),
+            format!("< frame 123 1.0 {} >", "\u{12}".repeat(100)),
+        ] {
+            let e = parse_element(&el).expect_err(&el).to_string();
+            assert!(e.len() <= 300, "{} bytes: {e}", e.len());
+            assert!(!e.contains("\\u{12}") && !e.contains('\u{12}'), "{e}");
+        }
+        // Garbage outside elements likewise.
+        let mut f = Framer::new();
+        f.extend("\u{12}".repeat(200).as_bytes());
+        let e = f
+            .next_element()
+            .expect("garbage")
+            .expect_err("garbage")
+            .to_string();
+        assert!(e.len() <= 200 && !e.contains("\\u{12}"), "{e}");
     }
 
     #[test]
