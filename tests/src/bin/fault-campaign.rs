@@ -24,8 +24,10 @@ fn live_table() -> Option<String> {
     }
     Some(format!(
         "\n## Process-level checks (measured by reliability-live)\n\n\
-         The real release binaries as separate processes on loopback; copied from\n\
-         `docs/reliability-live.md`, which says how it was generated.\n\n{}\n",
+         The real release binaries as separate processes on loopback, copied from\n\
+         `docs/reliability-live.md` (which says how it was generated). Rows at normal priority\n\
+         depend on the machine's other load (its load average is given); the rows with the\n\
+         bridge and simulator at SCHED_FIFO show what the bridge itself does.\n\n{}\n",
         rows.join("\n")
     ))
 }
