@@ -56,7 +56,10 @@ fuzz_target!(|input: &[u8]| {
             assert!(rank(session.mode()) >= rank(before), "mode went back");
             if let Some(reply) = &step.reply {
                 assert!(reply.len() <= 512, "reply of {} bytes", reply.len());
-                assert!(reply.starts_with("< ") && reply.ends_with(" >"), "{reply:?}");
+                assert!(
+                    reply.starts_with("< ") && reply.ends_with(" >"),
+                    "{reply:?}"
+                );
                 assert_eq!(reply.matches('<').count(), 1, "{reply:?}");
                 assert_eq!(reply.matches('>').count(), 1, "{reply:?}");
             }
