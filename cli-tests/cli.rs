@@ -262,3 +262,119 @@ fn cia402_platform_file_round_trips_and_bad_fields_are_named() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("cia403"));
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// `rollbase bridge --listen 127.0.0.1:0` with its stderr piped; returns it, its port and a
+/// receiver of its further stderr lines (a thread reads them until EOF, or until `keep_stderr`
+/// is false: then the thread closes the pipe right after the port line).
+fn start_bridge(
+    keep_stderr: bool,
+) -> (std::process::Child, u16, std::sync::mpsc::Receiver<String>) {
+    use std::io::BufRead;
+    let mut child = rollbase()
+        .args(["bridge", "--listen", "127.0.0.1:0"])
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start rollbase bridge");
+    let stderr = child.stderr.take().expect("stderr");
+    let (port_tx, port_rx) = std::sync::mpsc::channel();
+    let (line_tx, line_rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut lines = std::io::BufReader::new(stderr).lines();
+        for line in lines.by_ref() {
+            let Ok(line) = line else { return };
+            if let Some(rest) = line.split("listening on 127.0.0.1:").nth(1) {
+                let port: u16 = rest
+                    .split(|c: char| !c.is_ascii_digit())
+                    .next()
+                    .and_then(|p| p.parse().ok())
+                    .expect("port in the listening line");
+                let _ = port_tx.send(port);
+                break;
+            }
+        }
+        if !keep_stderr {
+            return; // drops the pipe's read end: the bridge's stderr is now closed
+        }
+        for line in lines.map_while(Result::ok) {
+            let _ = line_tx.send(line);
+        }
+    });
+    let port = port_rx
+        .recv_timeout(Duration::from_secs(10))
+        .expect("the bridge printed its port");
+    (child, port, line_rx)
+}
+
+/// Two clients on channel vcan0 exchange a frame through the bridge.
+fn exchange_a_frame(port: u16) {
+    use rollbase_driver::bus::socketcand::SocketcandBus;
+    use rollbase_driver::bus::CanBus;
+    use rollbase_driver::frame::CanFrame;
+    let url = format!("socketcand://127.0.0.1:{port}/vcan0");
+    let mut a = SocketcandBus::open(&url).expect("client a");
+    let mut b = SocketcandBus::open(&url).expect("client b");
+    let f = CanFrame::new(0x181, &[1, 2, 3]).expect("frame");
+    let until = Instant::now() + Duration::from_secs(5);
+    loop {
+        CanBus::send(&mut a, &f).expect("send");
+        if let Ok(Some(g)) = b.recv_until(Instant::now() + Duration::from_millis(20)) {
+            if g.frame == f {
+                break;
+            }
+        }
+        assert!(Instant::now() < until, "the frame never arrived");
+    }
+}
+
+fn sigterm_and_wait(child: &mut std::process::Child) -> std::process::ExitStatus {
+    // SAFETY: sending SIGTERM to our own child process.
+    let r = unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGTERM) };
+    assert_eq!(r, 0);
+    let until = Instant::now() + Duration::from_secs(10);
+    loop {
+        if let Some(s) = child.try_wait().expect("wait") {
+            return s;
+        }
+        if Instant::now() > until {
+            let _ = child.kill();
+            panic!("the bridge did not stop within 10 s of SIGTERM");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn bridge_keeps_serving_with_its_stderr_closed_and_exits_0_on_sigterm() {
+    let _serial = serial();
+    let (mut child, port, _lines) = start_bridge(false);
+    // Give the reader thread time to close the pipe, then make the bridge log (every client
+    // that leaves is a line on the closed stderr).
+    std::thread::sleep(Duration::from_millis(200));
+    exchange_a_frame(port);
+    exchange_a_frame(port);
+    assert!(
+        child.try_wait().expect("wait").is_none(),
+        "the bridge died with its stderr closed"
+    );
+    let status = sigterm_and_wait(&mut child);
+    assert_eq!(status.code(), Some(0), "{status:?}");
+}
+
+#[test]
+fn bridge_stops_on_sigterm_like_ctrl_c_with_its_totals() {
+    let _serial = serial();
+    let (mut child, port, lines) = start_bridge(true);
+    exchange_a_frame(port);
+    let status = sigterm_and_wait(&mut child);
+    assert_eq!(status.code(), Some(0), "{status:?}");
+    // The reader thread ends at EOF, which the bridge's exit gives.
+    let log: Vec<String> = lines.iter().collect();
+    let log = log.join("\n");
+    assert!(log.contains("SIGTERM: stopping"), "{log}");
+    assert!(
+        log.contains("stopped: 2 clients served, ") && log.contains(" lost by slow clients"),
+        "{log}"
+    );
+}

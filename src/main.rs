@@ -8,6 +8,38 @@ mod bridge;
 mod monitor_json;
 
 use clap::Parser;
+use std::io::Write as _;
+
+/// Installs the log subscriber: `tracing` events go to stderr, filtered by `RUST_LOG`
+/// (default `info`; e.g. `RUST_LOG=debug` adds one line per client event of the bridge).
+/// Writing never fails the program: the fmt layer drops lines stderr does not take (a closed
+/// pipe, a full disk) and, with `log_internal_errors(false)`, does not report that on stderr
+/// either (that report would itself fail). Calling it twice is harmless.
+pub fn init_logging() {
+    use std::io::IsTerminal as _;
+    use tracing_subscriber::EnvFilter;
+    let (filter, bad) = match EnvFilter::try_from_default_env() {
+        Ok(f) => (f, None),
+        Err(e) => (
+            EnvFilter::new("info"),
+            std::env::var("RUST_LOG").ok().map(|v| (v, e)),
+        ),
+    };
+    let installed = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
+        .with_target(false)
+        .log_internal_errors(false)
+        .try_init()
+        .is_ok();
+    if let (true, Some((value, e))) = (installed, bad) {
+        // An empty RUST_LOG is "unset", not an error worth a line.
+        if !value.trim().is_empty() {
+            tracing::warn!("RUST_LOG={value:?} is not a valid filter ({e}); logging at info");
+        }
+    }
+}
 
 fn main() {
     // A closed stdout or stderr must never kill a run (it would lose its recording): SIGPIPE
@@ -17,13 +49,12 @@ fn main() {
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_IGN);
     }
-    app::init_logging();
+    init_logging();
     let cli = app::Cli::parse();
     match app::run(cli) {
         Ok(code) => std::process::exit(code),
         Err(e) => {
-            use std::io::Write;
-            let mut w = std::io::stderr();
+            let mut w = std::io::stderr().lock();
             let _ = writeln!(w, "error: {e}");
             let mut src = std::error::Error::source(&e);
             while let Some(s) = src {

@@ -405,15 +405,3 @@ pub(crate) fn install_signals(stop: Arc<AtomicBool>, action: SignalAction) -> Ar
     came
 }
 
-/// Logs through `tracing` to stderr (level from `RUST_LOG`, default `info`); a closed stderr
-/// never stops the process.
-pub fn init_logging() {
-    use tracing_subscriber::EnvFilter;
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .with_target(false)
-        .try_init();
-}

@@ -169,7 +169,7 @@ pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
                     }
                     Err(e) => {
                         stats.unparsable += 1;
-                        println!("line {}: {e}", lineno + 1);
+                        emit!("line {}: {e}", lineno + 1);
                     }
                 }
             }

@@ -196,8 +196,26 @@ pub enum ProtocolError {
     },
 }
 
+/// At most `n` characters of `s` for a message, printable ASCII only (anything else is shown
+/// as `?`): a `{:?}` of the result is at most 2n + 2 bytes, so an error reply to hostile
+/// input stays short (the `socketcand_server` fuzz target found 869-byte replies to a
+/// 256-byte element of control characters, each escaped as `\u{12}`).
 fn clip(s: &str, n: usize) -> String {
-    s.chars().take(n).collect()
+    s.chars()
+        .take(n)
+        .map(|c| {
+            if c.is_ascii_graphic() || c == ' ' {
+                c
+            } else {
+                '?'
+            }
+        })
+        .collect()
+}
+
+/// A token of a bad element, as shown in the error.
+fn tok_shown(s: &str) -> String {
+    clip(s, 24)
 }
 
 /// One protocol element, in either direction.
@@ -297,21 +315,27 @@ pub fn parse_element(element: &str) -> Result<Element, ProtocolError> {
                 .next()
                 .ok_or_else(|| bad("frame", "missing id".into()))?;
             let id = parse_hex_u32(id_s)
-                .ok_or_else(|| bad("frame", format!("id {id_s:?} is not hex")))?;
+                .ok_or_else(|| bad("frame", format!("id {:?} is not hex", tok_shown(id_s))))?;
             let ts_s = tokens
                 .next()
                 .ok_or_else(|| bad("frame", "missing timestamp".into()))?;
             let timestamp = parse_timestamp(ts_s).ok_or_else(|| {
                 bad(
                     "frame",
-                    format!("timestamp {ts_s:?} is not SECONDS.MICROSECONDS"),
+                    format!(
+                        "timestamp {:?} is not SECONDS.MICROSECONDS",
+                        tok_shown(ts_s)
+                    ),
                 )
             })?;
             let mut data = [0u8; MAX_DATA_LEN];
             let mut n = 0usize;
             for tok in tokens {
                 if tok.len() % 2 != 0 || !tok.bytes().all(|b| b.is_ascii_hexdigit()) {
-                    return Err(bad("frame", format!("data {tok:?} is not hex byte pairs")));
+                    return Err(bad(
+                        "frame",
+                        format!("data {:?} is not hex byte pairs", tok_shown(tok)),
+                    ));
                 }
                 for pair in tok.as_bytes().chunks(2) {
                     if n == MAX_DATA_LEN {
@@ -338,7 +362,7 @@ pub fn parse_element(element: &str) -> Result<Element, ProtocolError> {
                 .next()
                 .ok_or_else(|| bad("send", "missing id".into()))?;
             let id = parse_hex_u32(id_s)
-                .ok_or_else(|| bad("send", format!("id {id_s:?} is not hex")))?;
+                .ok_or_else(|| bad("send", format!("id {:?} is not hex", tok_shown(id_s))))?;
             let dlc_s = tokens
                 .next()
                 .ok_or_else(|| bad("send", "missing DLC".into()))?;
@@ -346,7 +370,7 @@ pub fn parse_element(element: &str) -> Result<Element, ProtocolError> {
                 .parse()
                 .ok()
                 .filter(|&d| d <= MAX_DATA_LEN)
-                .ok_or_else(|| bad("send", format!("DLC {dlc_s:?} is not 0..8")))?;
+                .ok_or_else(|| bad("send", format!("DLC {:?} is not 0..8", tok_shown(dlc_s))))?;
             let mut data = [0u8; MAX_DATA_LEN];
             let mut n = 0usize;
             for tok in tokens {
@@ -356,7 +380,7 @@ pub fn parse_element(element: &str) -> Result<Element, ProtocolError> {
                 if tok.is_empty() || tok.len() > 2 || !tok.bytes().all(|b| b.is_ascii_hexdigit()) {
                     return Err(bad(
                         "send",
-                        format!("data byte {tok:?} is not 1 or 2 hex digits"),
+                        format!("data byte {:?} is not 1 or 2 hex digits", tok_shown(tok)),
                     ));
                 }
                 data[n] = u8::from_str_radix(tok, 16).unwrap_or(0);
@@ -442,26 +466,23 @@ impl Framer {
         self.pos >= self.buf.len()
     }
 
+    /// Unconsumed bytes buffered.
+    pub fn buffered(&self) -> usize {
+        self.buf.len().saturating_sub(self.pos)
+    }
+
     /// The next complete element (`<` … `>` inclusive), `None` when more bytes are needed.
     pub fn next_element(&mut self) -> Option<Result<&str, ProtocolError>> {
         let rest = &self.buf[self.pos..];
         let Some(lt) = rest.iter().position(|&b| b == b'<') else {
             // Nothing but (possibly) garbage: consume it.
             let garbage = !rest.iter().all(|b| b.is_ascii_whitespace());
-            let text = String::from_utf8_lossy(rest)
-                .trim()
-                .chars()
-                .take(40)
-                .collect();
+            let text = clip(String::from_utf8_lossy(rest).trim(), 40);
             self.pos = self.buf.len();
             return garbage.then_some(Err(ProtocolError::Garbage { text }));
         };
         if !rest[..lt].iter().all(|b| b.is_ascii_whitespace()) {
-            let text = String::from_utf8_lossy(&rest[..lt])
-                .trim()
-                .chars()
-                .take(40)
-                .collect();
+            let text = clip(String::from_utf8_lossy(&rest[..lt]).trim(), 40);
             self.pos += lt;
             return Some(Err(ProtocolError::Garbage { text }));
         }
@@ -470,10 +491,10 @@ impl Framer {
         match body.iter().position(|&b| b == b'<' || b == b'>') {
             Some(i) if body[i] == b'<' => {
                 // An element that never closed: report it, resume at the next '<'.
-                let text = String::from_utf8_lossy(&self.buf[start..start + 1 + i])
-                    .chars()
-                    .take(40)
-                    .collect();
+                let text = clip(
+                    &String::from_utf8_lossy(&self.buf[start..start + 1 + i]),
+                    40,
+                );
                 self.pos = start + 1 + i;
                 Some(Err(ProtocolError::Garbage { text }))
             }
@@ -493,6 +514,219 @@ impl Framer {
                     None
                 }
             }
+        }
+    }
+}
+
+/// Why a server element carried no frame for the client ([`ClientDecoder::next_frame`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ClientDecodeError {
+    /// `< error TEXT >` from the server (a CAN error frame in raw mode, or a reply).
+    #[error("socketcand error element: {0}")]
+    ErrorElement(String),
+    /// A malformed element or text outside elements.
+    #[error("{0}")]
+    Malformed(ProtocolError),
+}
+
+/// The client side of the protocol without I/O: bytes from the server in, frames out. This is
+/// exactly what [`SocketcandBus`] runs on every received byte (and what the
+/// `socketcand_client` fuzz target feeds with arbitrary bytes).
+#[derive(Debug, Default)]
+pub struct ClientDecoder {
+    framer: Framer,
+    stats: SocketcandStats,
+}
+
+impl ClientDecoder {
+    /// An empty decoder.
+    pub fn new() -> ClientDecoder {
+        ClientDecoder {
+            framer: Framer::new(),
+            stats: SocketcandStats::default(),
+        }
+    }
+
+    /// Appends bytes received from the server.
+    pub fn extend(&mut self, bytes: &[u8]) {
+        self.framer.extend(bytes);
+    }
+
+    /// The next frame among the buffered elements; `Ok(None)` when more bytes are needed.
+    /// Frames rollbase does not represent (29-bit, RTR, FD) and replies without a frame are
+    /// skipped (the former counted); an error element or a malformed element is returned as
+    /// an error (counted), and decoding goes on after it with the next call.
+    pub fn next_frame(&mut self) -> Result<Option<TimestampedFrame>, ClientDecodeError> {
+        while let Some(r) = self.framer.next_element() {
+            match r.and_then(parse_element) {
+                Ok(Element::Frame(tf)) => {
+                    self.stats.frames_in += 1;
+                    return Ok(Some(tf));
+                }
+                Ok(Element::Unsupported(_)) => self.stats.skipped += 1,
+                Ok(Element::Error(msg)) => {
+                    self.stats.error_elements += 1;
+                    return Err(ClientDecodeError::ErrorElement(msg));
+                }
+                // Replies to our own commands (none are sent after the handshake) and
+                // server chatter carry no frames.
+                Ok(_) => {}
+                Err(e) => {
+                    self.stats.malformed += 1;
+                    return Err(ClientDecodeError::Malformed(e));
+                }
+            }
+        }
+        Ok(None)
+    }
+
+    /// Counters so far (`frames_out` is always 0: the decoder sends nothing).
+    pub fn stats(&self) -> SocketcandStats {
+        self.stats
+    }
+
+    /// Bytes buffered and not yet consumed (at most one partial element after
+    /// [`ClientDecoder::next_frame`] returned `Ok(None)`).
+    pub fn buffered(&self) -> usize {
+        self.framer.buffered()
+    }
+}
+
+/// `< error TEXT >` with the protocol's delimiters in TEXT replaced by `'`, so the reply is
+/// always exactly one element.
+pub fn error_element(text: &str) -> String {
+    let clean: String = text
+        .chars()
+        .map(|c| if c == '<' || c == '>' { '\'' } else { c })
+        .collect();
+    format!("< error {clean} >")
+}
+
+/// Where a client of a server stands in the handshake.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ServerMode {
+    /// Connected, no channel opened yet.
+    #[default]
+    NoBus,
+    /// A channel is open (socketcand's BCM mode: `send` works, nothing is forwarded).
+    Bcm,
+    /// Raw mode: every frame on the channel is forwarded to the client.
+    Raw,
+}
+
+/// What the server does about one element, besides the reply.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ServerAction {
+    /// Nothing.
+    None,
+    /// Open this channel (the reply is `< ok >` unless the server refuses it).
+    Open(String),
+    /// The client switched to raw mode: forward frames to it (after the settle time).
+    EnterRaw,
+    /// Put this frame on the channel.
+    Send(CanFrame),
+}
+
+/// The outcome of [`ServerSession::handle`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ServerStep {
+    /// The element to send back, if any (always exactly one `< … >` element).
+    pub reply: Option<String>,
+    /// What to do.
+    pub action: ServerAction,
+    /// This element shows the client has read the raw-mode `< ok >` (any element after it
+    /// other than a repeated `< rawmode >`): a server that holds frames back for
+    /// python-can's exact `< ok >` comparison may forward them now, and must subscribe the
+    /// client before acting on the element (its reply may come at once).
+    pub read_raw_ok: bool,
+}
+
+/// The server side of the protocol (raw mode; `send` also in BCM mode) without I/O: one
+/// parsed client element in, the reply and the action out. `rollbase bridge` runs every
+/// element a client sends through it, and the `socketcand_server` fuzz target feeds it
+/// arbitrary bytes.
+#[derive(Debug, Default)]
+pub struct ServerSession {
+    mode: ServerMode,
+    raw_ok_unread: bool,
+}
+
+impl ServerSession {
+    /// A client that has just been greeted with `< hi >`.
+    pub fn new() -> ServerSession {
+        ServerSession::default()
+    }
+
+    /// The client's mode.
+    pub fn mode(&self) -> ServerMode {
+        self.mode
+    }
+
+    /// Handles one element from the client (or the framing/parsing error it gave).
+    pub fn handle(&mut self, parsed: Result<Element, ProtocolError>) -> ServerStep {
+        let read_raw_ok = self.mode == ServerMode::Raw
+            && self.raw_ok_unread
+            && !matches!(parsed, Ok(Element::RawMode));
+        if read_raw_ok {
+            self.raw_ok_unread = false;
+        }
+        let ok = || Some("< ok >".to_string());
+        let (reply, action) = match (parsed, self.mode) {
+            (Ok(Element::Echo), _) => (Some("< echo >".to_string()), ServerAction::None),
+            (Ok(Element::Open(ch)), ServerMode::NoBus) => {
+                self.mode = ServerMode::Bcm;
+                (ok(), ServerAction::Open(ch))
+            }
+            (Ok(Element::Open(_)), _) => (
+                Some(error_element("a channel is already open on this connection")),
+                ServerAction::None,
+            ),
+            (Ok(Element::RawMode), ServerMode::Bcm) => {
+                self.mode = ServerMode::Raw;
+                self.raw_ok_unread = true;
+                (ok(), ServerAction::EnterRaw)
+            }
+            (Ok(Element::RawMode), ServerMode::Raw) => (ok(), ServerAction::None),
+            (Ok(Element::BcmMode), ServerMode::Bcm) => (ok(), ServerAction::None),
+            (Ok(Element::BcmMode), ServerMode::Raw) => (
+                Some(error_element(
+                    "bcm mode is not supported by rollbase bridge; use rawmode",
+                )),
+                ServerAction::None,
+            ),
+            (Ok(Element::Send(frame)), ServerMode::Bcm | ServerMode::Raw) => {
+                (None, ServerAction::Send(frame))
+            }
+            (Ok(Element::Unsupported(w)), _) => (
+                Some(error_element(&format!(
+                    "{w}: 29-bit, RTR and CAN FD frames are not carried by rollbase bridge"
+                ))),
+                ServerAction::None,
+            ),
+            (Ok(Element::Hi | Element::Ok | Element::Frame(_) | Element::Error(_)), _) => (
+                Some(error_element("unexpected server element from a client")),
+                ServerAction::None,
+            ),
+            (Ok(Element::Other(cmd)), _) if cmd.is_empty() => {
+                (Some(error_element("empty command")), ServerAction::None)
+            }
+            (Ok(Element::Other(cmd)), _) => (
+                Some(error_element(&format!(
+                    "unknown or unsupported command {:?} (rollbase bridge speaks raw mode: open, rawmode, send, echo)",
+                    clip(cmd.split_whitespace().next().unwrap_or(""), 40)
+                ))),
+                ServerAction::None,
+            ),
+            (Ok(_), ServerMode::NoBus) => (
+                Some(error_element("open a channel first: < open vcan0 >")),
+                ServerAction::None,
+            ),
+            (Err(e), _) => (Some(error_element(&e.to_string())), ServerAction::None),
+        };
+        ServerStep {
+            reply,
+            action,
+            read_raw_ok,
         }
     }
 }
@@ -518,11 +752,11 @@ pub struct SocketcandBus {
     stream: TcpStream,
     url: SocketcandUrl,
     label: String,
-    framer: Framer,
+    decoder: ClientDecoder,
     out: Vec<u8>,
     out_pos: usize,
     text: String,
-    stats: SocketcandStats,
+    frames_out: u64,
 }
 
 fn io_err(label: &str, op: &'static str, e: &io::Error, hint: &str) -> BusError {
@@ -587,11 +821,11 @@ impl SocketcandBus {
         let mut bus = SocketcandBus {
             stream,
             label,
-            framer: Framer::new(),
+            decoder: ClientDecoder::new(),
             out: Vec::with_capacity(MAX_PENDING_OUTPUT),
             out_pos: 0,
             text: String::with_capacity(64),
-            stats: SocketcandStats::default(),
+            frames_out: 0,
             url,
         };
         bus.expect(Element::Hi, "the greeting `< hi >`")?;
@@ -618,7 +852,10 @@ impl SocketcandBus {
 
     /// Counters since the connection was opened.
     pub fn stats(&self) -> SocketcandStats {
-        self.stats
+        SocketcandStats {
+            frames_out: self.frames_out,
+            ..self.decoder.stats()
+        }
     }
 
     fn write_handshake(&mut self, s: &str) -> Result<(), BusError> {
@@ -640,7 +877,7 @@ impl SocketcandBus {
     fn expect(&mut self, want: Element, what: &str) -> Result<(), BusError> {
         let mut buf = [0u8; 512];
         loop {
-            if let Some(r) = self.framer.next_element() {
+            if let Some(r) = self.decoder.framer.next_element() {
                 let el = r.and_then(parse_element);
                 return match el {
                     Ok(e) if e == want => Ok(()),
@@ -669,7 +906,7 @@ impl SocketcandBus {
                         "the server closed the connection while waiting for {what}"
                     )))
                 }
-                Ok(n) => self.framer.extend(&buf[..n]),
+                Ok(n) => self.decoder.extend(&buf[..n]),
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
                 Err(e)
                     if matches!(
@@ -712,33 +949,10 @@ impl SocketcandBus {
     /// The next buffered frame, skipping what rollbase ignores; errors for error/malformed
     /// elements (retryable).
     fn next_buffered(&mut self) -> Result<Option<TimestampedFrame>, BusError> {
-        while let Some(r) = self.framer.next_element() {
-            match r.and_then(parse_element) {
-                Ok(Element::Frame(tf)) => {
-                    self.stats.frames_in += 1;
-                    return Ok(Some(tf));
-                }
-                Ok(Element::Unsupported(_)) => self.stats.skipped += 1,
-                Ok(Element::Error(msg)) => {
-                    self.stats.error_elements += 1;
-                    return Err(BusError::ErrorFrame {
-                        iface: self.label.clone(),
-                        detail: format!("socketcand error element: {msg}"),
-                    });
-                }
-                // Replies to our own commands (none are sent after the handshake) and
-                // server chatter carry no frames.
-                Ok(_) => {}
-                Err(e) => {
-                    self.stats.malformed += 1;
-                    return Err(BusError::ErrorFrame {
-                        iface: self.label.clone(),
-                        detail: e.to_string(),
-                    });
-                }
-            }
-        }
-        Ok(None)
+        self.decoder.next_frame().map_err(|e| BusError::ErrorFrame {
+            iface: self.label.clone(),
+            detail: e.to_string(),
+        })
     }
 
     fn wait(&self, timeout: Duration) -> Result<(), BusError> {
@@ -779,7 +993,7 @@ impl CanBus for SocketcandBus {
         self.text.clear();
         format_send_into(&mut self.text, frame);
         self.out.extend_from_slice(self.text.as_bytes());
-        self.stats.frames_out += 1;
+        self.frames_out += 1;
         self.flush_out()
     }
 
@@ -796,7 +1010,7 @@ impl CanBus for SocketcandBus {
                         iface: self.label.clone(),
                     })
                 }
-                Ok(n) => self.framer.extend(&buf[..n]),
+                Ok(n) => self.decoder.extend(&buf[..n]),
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(None),
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
                 Err(e) => return Err(io_err(&self.label, "receive", &e, "")),
@@ -964,6 +1178,53 @@ mod tests {
             parse_element("< add 1 0 123 0 >"),
             Ok(Element::Other("add 1 0 123 0".into()))
         );
+    }
+
+    #[test]
+    fn error_replies_to_hostile_elements_stay_short_and_printable() {
+        // Found by the socketcand_server fuzz target: a `send` element full of control
+        // characters got an 869-byte reply (each character escaped as `\u{12}`).
+        let mut bad = String::from("<\t send");
+        bad.push_str(&"\t".repeat(40));
+        bad.push_str(&"\u{12}".repeat(150));
+        bad.push_str(" 1 >");
+        let mut session = ServerSession::new();
+        session.handle(Ok(Element::Open("vcan0".into())));
+        let mut f = Framer::new();
+        f.extend(bad.as_bytes());
+        let el = f.next_element().expect("one element");
+        let step = session.handle(el.and_then(parse_element));
+        let reply = step.reply.expect("an error reply");
+        assert!(reply.starts_with("< error "), "{reply}");
+        assert!(reply.len() <= 400, "{} bytes: {reply}", reply.len());
+        assert!(
+            reply
+                .chars()
+                .all(|c| c.is_ascii_graphic() || c == ' ' || c == '`'),
+            "{reply}"
+        );
+        // Every token of every argument error is shown the same way.
+        for el in [
+            format!("< send {} 1 01 >", "\u{12}".repeat(100)),
+            format!("< send 123 {} >", "\u{12}".repeat(100)),
+            format!("< send 123 1 {} >", "\u{12}".repeat(100)),
+            format!("< frame {} 1.0 >", "\u{12}".repeat(100)),
+            format!("< frame 123 {} >", "\u{12}".repeat(100)),
+            format!("< frame 123 1.0 {} >", "\u{12}".repeat(100)),
+        ] {
+            let e = parse_element(&el).expect_err(&el).to_string();
+            assert!(e.len() <= 300, "{} bytes: {e}", e.len());
+            assert!(!e.contains("\\u{12}") && !e.contains('\u{12}'), "{e}");
+        }
+        // Garbage outside elements likewise.
+        let mut f = Framer::new();
+        f.extend("\u{12}".repeat(200).as_bytes());
+        let e = f
+            .next_element()
+            .expect("garbage")
+            .expect_err("garbage")
+            .to_string();
+        assert!(e.len() <= 200 && !e.contains("\\u{12}"), "{e}");
     }
 
     #[test]

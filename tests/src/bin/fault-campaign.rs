@@ -13,6 +13,25 @@ use rollbase_vcan_sim::faults::{EncoderJump, EncoderStuck, MotorFault};
 use rollbase_vcan_sim::FaultSchedule;
 use std::fmt::Write as _;
 
+/// The rows of `docs/reliability-live.md` (written by `reliability-live`) as a second table,
+/// if that file exists.
+fn live_table() -> Option<String> {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/reliability-live.md");
+    let text = std::fs::read_to_string(path).ok()?;
+    let rows: Vec<&str> = text.lines().filter(|l| l.starts_with('|')).collect();
+    if rows.is_empty() {
+        return None;
+    }
+    Some(format!(
+        "\n## Process-level checks (measured by reliability-live)\n\n\
+         The real release binaries as separate processes on loopback, copied from\n\
+         `docs/reliability-live.md` (which says how it was generated). Rows at normal priority\n\
+         depend on the machine's other load (its load average is given); the rows with the\n\
+         bridge and simulator at SCHED_FIFO show what the bridge itself does.\n\n{}\n",
+        rows.join("\n")
+    ))
+}
+
 fn cell(s: &str) -> String {
     s.replace('|', "\\|").replace('\n', " ")
 }
@@ -124,6 +143,9 @@ fn main() {
         for f in &c.failures {
             println!("      failed: {f}");
         }
+    }
+    if let Some(live) = live_table() {
+        md.push_str(&live);
     }
     md.push_str(include_str!("reliability_tail.md"));
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/reliability.md");
