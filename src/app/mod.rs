@@ -4,6 +4,7 @@
 //! (decode frames), [`sinks`] (where a run's records go: summary, recording, candump).
 
 mod monitor;
+mod ros2cmd;
 mod sinks;
 mod trajectory;
 
@@ -42,6 +43,9 @@ pub enum CliError {
     /// Plotting failed.
     #[error(transparent)]
     Plot(#[from] rollbase::plot::PlotError),
+    /// The ROS 2 node could not start.
+    #[error(transparent)]
+    Ros2(#[from] rollbase::ros2::Ros2Error),
     /// A capture file could not be read.
     #[error("{path}: {message}")]
     File {
@@ -77,6 +81,11 @@ enum Command {
     Monitor(MonitorArgs),
     /// Plot a recording to PNG files.
     Plot(PlotArgs),
+    /// Rewrite a recording left without index and summary (killed writer) into a new file.
+    Recover(ros2cmd::RecoverArgs),
+    /// The ROS 2 node fed with a synthetic state (for the interop tests; needs a network).
+    #[command(hide = true)]
+    Ros2Selftest(ros2cmd::SelftestArgs),
     /// Print the protocol as a DBC file (load it in cantools, SavvyCAN, …).
     Dbc,
     /// Print docs/protocol.md, generated from the protocol table.
@@ -170,10 +179,18 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
         Command::Run(a) => trajectory::run_bus(a),
         Command::Monitor(a) => monitor::monitor(a),
         Command::Bridge(a) => Ok(crate::bridge::run(a)?),
+        Command::Recover(a) => ros2cmd::recover(a),
+        Command::Ros2Selftest(a) => ros2cmd::selftest(a),
         Command::Plot(a) => {
             let rep = rollbase::plot::plot_recording(&a.file, &a.out)?;
             for f in &rep.files {
                 println!("{}", f.display());
+            }
+            for s in &rep.skipped {
+                eprintln!("skipped {s}");
+            }
+            for w in &rep.ignored {
+                eprintln!("warning: {w}");
             }
             if !rep.labelled {
                 eprintln!("note: no TTF font found, plots have no text; install fonts-dejavu-core or set ROLLBASE_FONT");

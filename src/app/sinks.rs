@@ -1,6 +1,6 @@
 //! Where a run's records go: the summary, the MCAP recording, the candump log.
 
-use rollbase::record::McapRecorder;
+use rollbase::record::{McapRecorder, RecordOptions};
 use rollbase_control::record::CycleRecord;
 use rollbase_control::runtime::RunSummary;
 use rollbase_driver::candump::{CandumpWriter, LogEntry};
@@ -35,7 +35,14 @@ impl Sinks {
                 .map(|d| d.join(format!("{scenario}.mcap")))
         });
         let mcap = match record_path {
-            Some(p) => Some(McapRecorder::create(&p, &meta)?),
+            Some(p) => Some(McapRecorder::create_with(
+                &p,
+                &meta,
+                &RecordOptions {
+                    can_interface: iface.to_string(),
+                    ..Default::default()
+                },
+            )?),
             None => None,
         };
         let candump = match &common.candump {
@@ -137,6 +144,9 @@ impl Sinks {
             if !common.json {
                 for f in &rep.files {
                     eprintln!("plot: {}", f.display());
+                }
+                for w in &rep.ignored {
+                    eprintln!("plot warning: {w}");
                 }
             }
         }
