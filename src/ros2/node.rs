@@ -599,3 +599,146 @@ impl PublishSide {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rollbase_control::supervisor::SupervisorState;
+
+    const CHILD_ENV: &str = "ROLLBASE_TEST_IN_NETNS";
+    const TEST_NAME: &str =
+        "ros2::node::tests::node_talks_to_a_ros2_client_peer_in_a_private_netns";
+
+    /// Whether this process's network namespace has no interface but loopback.
+    fn only_loopback() -> bool {
+        std::fs::read_to_string("/proc/net/dev")
+            .map(|s| {
+                s.lines()
+                    .skip(2)
+                    .filter_map(|l| l.split(':').next())
+                    .all(|i| i.trim() == "lo")
+            })
+            .unwrap_or(false)
+    }
+
+    /// DDS discovery multicasts, so this test never starts DDS in the caller's network: it
+    /// re-executes itself in a private network namespace (`unshare -n`, needs root or user
+    /// namespaces) whose only interface is loopback, and says "skipped" when it cannot.
+    #[test]
+    fn node_talks_to_a_ros2_client_peer_in_a_private_netns() {
+        if std::env::var(CHILD_ENV).is_ok() {
+            assert!(
+                only_loopback(),
+                "the child must run in a loopback-only namespace"
+            );
+            in_namespace();
+            return;
+        }
+        let exe = std::env::current_exe().unwrap();
+        let probe = std::process::Command::new("unshare")
+            .args(["-n", "true"])
+            .output();
+        if !matches!(probe, Ok(ref o) if o.status.success()) {
+            eprintln!("skipped: cannot create a network namespace (unshare -n needs root or user namespaces)");
+            return;
+        }
+        let out = std::process::Command::new("unshare")
+            .args([
+                "-n",
+                "sh",
+                "-c",
+                "ip link set lo up && exec \"$0\" --exact \"$1\" --nocapture --test-threads 1",
+            ])
+            .arg(&exe)
+            .arg(TEST_NAME)
+            .env(CHILD_ENV, "1")
+            .output()
+            .unwrap();
+        let text = format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        if !out.status.success() && text.contains("ip: not found") {
+            eprintln!("skipped: no `ip` command to bring up loopback in the namespace");
+            return;
+        }
+        assert!(out.status.success(), "child failed:\n{text}");
+        assert!(text.contains("1 passed"), "the child ran the test:\n{text}");
+    }
+
+    fn in_namespace() {
+        let opts = Ros2Options {
+            namespace: "/nstest".into(),
+            ..Default::default()
+        };
+        // A command queue of 1 that is not drained until the end: the second command is dropped.
+        let (cmd_tx, cmd_rx) = std::sync::mpsc::sync_channel::<CommandEvent>(1);
+        let (state_tx, state_rx) = std::sync::mpsc::sync_channel::<BaseState>(8);
+        let origin = Instant::now();
+        let node = spawn_node(opts, cmd_tx, state_rx, origin).expect("node starts");
+
+        let ctx =
+            Context::from_domain_participant(DomainParticipantBuilder::new(0).build().unwrap())
+                .unwrap();
+        let mut peer = ctx
+            .new_node(
+                NodeName::new("/", "peer").unwrap(),
+                NodeOptions::new().enable_rosout(false),
+            )
+            .unwrap();
+        let twist_pub = publisher::<Twist>(&mut peer, "/nstest/cmd_vel").unwrap();
+        let odom_sub = subscription::<Odometry>(&mut peer, "/nstest/odom").unwrap();
+
+        let deadline = Instant::now() + Duration::from_secs(20);
+        let mut k = 0u64;
+        let mut odom = None;
+        let mut sent = 0;
+        while Instant::now() < deadline
+            && (odom.is_none() || node.stats().commands_dropped.load(Ordering::Relaxed) == 0)
+        {
+            let mut s = BaseState {
+                cycle: k,
+                t: k as f64 * 0.004,
+                log_time_ns: 1_000_000_000 + k * 4_000_000,
+                n: 4,
+                state: SupervisorState::Tracking,
+                ..Default::default()
+            };
+            s.odometry.pose.x = 1.5;
+            let _ = state_tx.try_send(s);
+            k += 1;
+            if let Ok(Some((o, _))) = odom_sub.take() {
+                odom = Some(o);
+            }
+            // Once the peer sees the node, send commands until one is dropped.
+            if odom.is_some() && sent < 50 && k % 10 == 0 {
+                let mut t = Twist::default();
+                t.linear.x = 0.25 + sent as f64;
+                if twist_pub.publish(t).is_ok() {
+                    sent += 1;
+                }
+            }
+            std::thread::sleep(Duration::from_millis(4));
+        }
+        let o = odom.expect("odometry reached the peer");
+        assert_eq!(o.header.frame_id, "odom");
+        assert_eq!(o.child_frame_id, "base_link");
+        assert_eq!(o.pose.pose.position.x, 1.5);
+        let first = cmd_rx.try_recv().expect("a command reached the queue");
+        match first.kind {
+            // 0.25 + the index of the first command that found the subscription matched.
+            CommandKind::Motion(m) => assert_eq!(m.twist.vx.fract(), 0.25, "{m:?}"),
+            k => panic!("{k:?}"),
+        }
+        assert!(first.t > 0.0 && first.t < origin.elapsed().as_secs_f64());
+        let st = node.stats();
+        assert_eq!(st.commands_sent.load(Ordering::Relaxed), 1);
+        assert!(
+            st.commands_dropped.load(Ordering::Relaxed) >= 1,
+            "a full queue drops and counts"
+        );
+        assert!(st.published.load(Ordering::Relaxed) > 0);
+        node.shutdown();
+    }
+}
