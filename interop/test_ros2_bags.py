@@ -98,7 +98,8 @@ def test_recover_salvages_a_recording_cut_like_after_kill_9(recording, tmp_path)
         n = sum(1 for _ in reader.iter_decoded_messages())
         stats = reader.get_summary().statistics
     assert stats.message_count == n
-    assert total * 0.35 < n <= total * 0.5, (n, total)
+    # Half the bytes hold about half the messages, less the torn chunk (at most 256 KiB).
+    assert total * 0.35 < n < total * 0.55, (n, total)
     assert f"recovered {n} messages" in out.stderr, out.stderr
     with AnyReader([fixed]) as r:
         assert sum(1 for _ in r.messages()) == n

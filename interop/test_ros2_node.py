@@ -127,6 +127,20 @@ def take(dp, name, ty, count, timeout=10.0, pred=lambda m: True):
     return got[:count]
 
 
+def matched(*endpoints, timeout=15.0):
+    """Waits until every writer has a matched subscription and every reader a matched
+    publication (a volatile sample written before discovery matched is lost by design)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if all(
+            (e.get_matched_subscriptions() if isinstance(e, DataWriter) else e.get_matched_publications())
+            for e in endpoints
+        ):
+            return
+        time.sleep(0.02)
+    raise AssertionError("DDS discovery did not match the node's endpoints in time")
+
+
 def cov6(c3):
     """The documented mapping: (x, y, θ) → rows/cols 0, 1, 5; z, roll, pitch unobserved
     (variance 1e6, no correlation)."""
@@ -231,7 +245,7 @@ def test_diagnostics_arrive_with_one_status_per_module_bus_and_supervisor(node, 
 def test_twist_and_leg_commands_arrive_exactly(node, dp):
     w_vel = DataWriter(dp, Topic(dp, "rt/cmd_vel", rt.Twist, qos=ROS_QOS), qos=ROS_QOS)
     w_leg = DataWriter(dp, Topic(dp, "rt/leg_commands", rt.Float64MultiArray, qos=ROS_QOS), qos=ROS_QOS)
-    time.sleep(1.5)  # discovery
+    matched(w_vel, w_leg)
     cmd = rt.Twist(linear=rt.Vector3(x=0.123456789012345, y=-0.25, z=7.0), angular=rt.Vector3(x=1.0, y=2.0, z=-0.7071067811865476))
     w_vel.write(cmd)
     got = node.next_json(lambda j: j.get("cmd") == "motion")
@@ -250,7 +264,8 @@ def test_stop_and_rearm_services_answer_honestly(node, dp):
     for srv in ("stop", "rearm"):
         req_w = DataWriter(dp, Topic(dp, f"rq{fqn}/{srv}Request", rt.TriggerRequest, qos=ROS_QOS), qos=ROS_QOS)
         rep_r = DataReader(dp, Topic(dp, f"rr{fqn}/{srv}Reply", rt.TriggerResponse, qos=ROS_QOS), qos=ROS_QOS)
-        time.sleep(1.5)  # discovery
+        matched(req_w, rep_r)
+        time.sleep(0.2)  # the node's reply writer matched our reader: let its side settle too
         guid = 0x1122334455667788
         req_w.write(rt.TriggerRequest(client_guid=guid, sequence_number=7))
         end = time.monotonic() + 10
@@ -278,7 +293,7 @@ def test_stamped_velocity_in_a_foreign_frame_is_refused(dp):
     try:
         assert st.ready["node"] == "/robot2/base"
         w = DataWriter(dp, Topic(dp, "rt/robot2/cmd_vel", rt.TwistStamped, qos=ROS_QOS), qos=ROS_QOS)
-        time.sleep(1.5)
+        matched(w)
         hdr = rt.Header(stamp=rt.Time(sec=1, nanosec=2), frame_id="map")
         w.write(rt.TwistStamped(header=hdr, twist=rt.Twist(linear=rt.Vector3(x=9.0))))
         w.write(rt.TwistStamped(header=rt.Header(frame_id="base_link"), twist=rt.Twist(linear=rt.Vector3(x=0.5))))

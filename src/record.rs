@@ -878,7 +878,7 @@ mod tests {
             data: [1, 2, 3, 4, 5, 6, 7, 8],
             error: None,
         });
-        if k % 5 == 0 {
+        if k.is_multiple_of(5) {
             r.push_rx(FrameRecord {
                 t: r.t + 0.0015,
                 id: 0x182,

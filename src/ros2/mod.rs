@@ -240,7 +240,7 @@ pub fn parse_joint_names(s: &str) -> Result<JointNames, String> {
             "joint name {bad:?} in {s:?}: names are non-empty and without spaces or quotes, comma-separated"
         ));
     }
-    if names.len() % 3 != 0 {
+    if !names.len().is_multiple_of(3) {
         return Err(format!(
             "{} joint names in {s:?}: give 3 per wheel (steer, drive, leg)",
             names.len()

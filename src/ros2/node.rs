@@ -712,7 +712,7 @@ mod tests {
                 odom = Some(o);
             }
             // Once the peer sees the node, send commands until one is dropped.
-            if odom.is_some() && sent < 50 && k % 10 == 0 {
+            if odom.is_some() && sent < 50 && k.is_multiple_of(10) {
                 let mut t = Twist::default();
                 t.linear.x = 0.25 + sent as f64;
                 if twist_pub.publish(t).is_ok() {
