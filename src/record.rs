@@ -39,8 +39,9 @@
 //! `rosbags`, `mcap-ros2-support`, Foxglove) read all of them. NaN marks a missing value
 //! (no truth, ICR at infinity).
 //!
-//! Chunks are 256 KiB: a process killed hard loses at most the chunk being filled (about a
-//! second of a demo run); [`recover`] rewrites such a file with its index and summary.
+//! Chunks are 256 KiB: a process killed hard loses at most the chunk being filled (about
+//! 0.4 s of a 4-wheel run: a seed-000 demo writes about 2.8 kB per cycle, 690 kB/s at
+//! 250 Hz); [`recover`] rewrites such a file with its index and summary.
 
 use crate::ros2::convert::StateSampler;
 use crate::ros2::msg::{self, Header, RosMsg};
