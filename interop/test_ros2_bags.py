@@ -117,3 +117,29 @@ def test_ros2_bag_info_if_installed(recording):
     out = subprocess.run(["ros2", "bag", "info", "-s", "mcap", str(rec)], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert "/pose" in out.stdout and "can_msgs/msg/Frame" in out.stdout
+
+
+def test_message_definitions_hash_like_upstream_ros2():
+    """Each standard type rollbase declares, parsed by rosbags from rollbase's .msg text, has
+    the same RIHS01 type hash (names, types and order of every field, nested types included)
+    as the ROS 2 Jazzy definition rosbags ships."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    out = rollbase("ros2-msg-definitions")
+    assert out.returncode == 0, out.stderr
+    defs = json.loads(out.stdout)
+    jazzy = get_typestore(Stores.ROS2_JAZZY)
+    checked = []
+    for name, text in defs.items():
+        if "/srv/" in name:
+            continue  # service parts are never bag schemas; rosbags names them differently
+        ours = get_typestore(Stores.EMPTY)
+        ours.register(get_types_from_msg(text, name))
+        assert name in ours.fielddefs, name
+        if name in jazzy.fielddefs:
+            assert ours.hash_rihs01(name) == jazzy.hash_rihs01(name), name
+            checked.append(name)
+    for must in ("nav_msgs/msg/Odometry", "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/JointState",
+                 "diagnostic_msgs/msg/DiagnosticArray", "std_msgs/msg/Float64MultiArray",
+                 "geometry_msgs/msg/TwistStamped", "std_msgs/msg/String"):
+        assert must in checked, (must, checked)

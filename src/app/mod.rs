@@ -86,6 +86,9 @@ enum Command {
     /// The ROS 2 node fed with a synthetic state (for the interop tests; needs a network).
     #[command(hide = true)]
     Ros2Selftest(ros2cmd::SelftestArgs),
+    /// Print every ROS 2 message definition rollbase uses, as JSON {name: full definition}.
+    #[command(hide = true)]
+    Ros2MsgDefinitions,
     /// Print the protocol as a DBC file (load it in cantools, SavvyCAN, …).
     Dbc,
     /// Print docs/protocol.md, generated from the protocol table.
@@ -181,6 +184,14 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
         Command::Bridge(a) => Ok(crate::bridge::run(a)?),
         Command::Recover(a) => ros2cmd::recover(a),
         Command::Ros2Selftest(a) => ros2cmd::selftest(a),
+        Command::Ros2MsgDefinitions => {
+            let defs: serde_json::Map<String, serde_json::Value> = rollbase::ros2::msg::ALL
+                .iter()
+                .map(|d| (d.name.to_string(), d.full_definition().into()))
+                .collect();
+            println!("{}", serde_json::Value::Object(defs));
+            Ok(0)
+        }
         Command::Plot(a) => {
             let rep = rollbase::plot::plot_recording(&a.file, &a.out)?;
             for f in &rep.files {

@@ -415,7 +415,7 @@ pub struct Sampled {
     /// `joint_states`, at its rate.
     pub joint_states: Option<JointState>,
     /// `diagnostics`, at its rate and whenever the supervisor state, fault reason or limiting
-    /// cause changes.
+    /// cause changes (at most every [`MIN_CHANGE_INTERVAL`] for changes).
     pub diagnostics: Option<DiagnosticArray>,
     /// `supervisor_state`, with `diagnostics`.
     pub supervisor_state: Option<StringMsg>,
@@ -436,7 +436,14 @@ pub struct StateSampler {
     builder: DiagnosticsBuilder,
     names: Option<(usize, Vec<String>)>,
     last_key: Option<String>,
+    pending: bool,
+    last_change: Option<f64>,
 }
+
+/// Shortest time between two change-triggered publications of `diagnostics` and
+/// `supervisor_state` (s): a cause that flaps every cycle must not flood the topic; the latest
+/// state still goes out at most this late.
+pub const MIN_CHANGE_INTERVAL: f64 = 0.1;
 
 impl StateSampler {
     /// A sampler with the options' frames, tf switch, joint names and rates.
@@ -451,6 +458,8 @@ impl StateSampler {
             builder: DiagnosticsBuilder::new(&opts.node_name),
             names: None,
             last_key: None,
+            pending: false,
+            last_change: None,
         }
     }
 
@@ -476,18 +485,28 @@ impl StateSampler {
             }
         }
         // A change of state, fault reason or limiting cause (not of the speed scale, which
-        // moves continuously) is published at once.
+        // moves continuously) is published at once, at most every MIN_CHANGE_INTERVAL.
         let key = format!(
             "{} {:?} {}",
             s.state.name(),
             s.reason.map(|r| r.to_string()),
             s.shaping.limiting.name()
         );
-        let changed = self.last_key.as_deref() != Some(key.as_str());
-        if self.diag.due(s.t) || changed {
+        if self.last_key.as_deref() != Some(key.as_str()) {
+            self.pending = true;
+        }
+        let due = self.diag.due(s.t);
+        let may = self
+            .last_change
+            .is_none_or(|l| s.t - l >= MIN_CHANGE_INTERVAL - 1e-9);
+        if due || (self.pending && may) {
+            if !due {
+                self.last_change = Some(s.t);
+            }
             out.diagnostics = Some(self.builder.build(s));
             out.supervisor_state = Some(supervisor_text(s));
             self.last_key = Some(key);
+            self.pending = false;
         }
         out
     }
@@ -706,7 +725,12 @@ mod tests {
             if k == 300 {
                 assert_eq!(m.supervisor_state.as_ref().unwrap().data, "fault");
             }
-            if k == 301 {
+            // Back to tracking one cycle later: held back for 0.1 s (a flapping cause must
+            // not flood the topic), then published.
+            if (301..325).contains(&k) {
+                assert!(m.supervisor_state.is_none(), "cycle {k}");
+            }
+            if k == 325 {
                 assert_eq!(m.supervisor_state.as_ref().unwrap().data, "tracking");
             }
         }

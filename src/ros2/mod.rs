@@ -122,7 +122,8 @@ pub struct Ros2Options {
     /// Rate of `joint_states` (Hz, default 50).
     pub joint_states_rate_hz: f64,
     /// Rate of `diagnostics` and of `supervisor_state` when it does not change (Hz, default 1;
-    /// a change of the supervisor state is published at once).
+    /// a change of the supervisor state, fault reason or limiting cause is published at once,
+    /// at most once per 0.1 s).
     pub diagnostics_rate_hz: f64,
     /// Service mapping of `~/stop` and `~/rearm`.
     pub service_mapping: ServiceMapping,

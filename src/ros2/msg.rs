@@ -420,6 +420,44 @@ def!(
     [HEADER]
 );
 
+/// Every definition of this module (for tools and tests that check them against upstream).
+pub static ALL: [&MsgDef; 34] = [
+    &TIME,
+    &HEADER,
+    &VECTOR3,
+    &POINT,
+    &QUATERNION,
+    &POSE,
+    &POSE_WITH_COVARIANCE,
+    &TWIST,
+    &TWIST_STAMPED,
+    &TWIST_WITH_COVARIANCE,
+    &TRANSFORM,
+    &TRANSFORM_STAMPED,
+    &ODOMETRY,
+    &TF_MESSAGE,
+    &JOINT_STATE,
+    &KEY_VALUE,
+    &DIAGNOSTIC_STATUS,
+    &DIAGNOSTIC_ARRAY,
+    &STRING,
+    &MULTI_ARRAY_DIMENSION,
+    &MULTI_ARRAY_LAYOUT,
+    &FLOAT64_MULTI_ARRAY,
+    &TRIGGER_REQUEST,
+    &TRIGGER_RESPONSE,
+    &CAN_FRAME,
+    &RB_FRAME_REJECTION,
+    &RB_WHEEL_FEEDBACK,
+    &RB_FEEDBACK,
+    &RB_REFERENCE,
+    &RB_COMMAND,
+    &RB_POSE,
+    &RB_ICR,
+    &RB_SUPERVISOR,
+    &RB_TIMING,
+];
+
 // ---------------------------------------------------------------------------------------------
 // Types
 // ---------------------------------------------------------------------------------------------
