@@ -47,7 +47,10 @@ fn ctrl_c_and_sigterm_during_a_real_time_demo_are_a_controlled_stop_then_exit_3(
             "{name}: exit {:?}\n{stdout}\n{stderr}",
             out.status
         );
-        assert!(stderr.contains(&format!("{name}: controlled stop")), "{stderr}");
+        assert!(
+            stderr.contains(&format!("{name}: controlled stop")),
+            "{stderr}"
+        );
         let v: serde_json::Value = serde_json::from_str(stdout.trim()).expect("one JSON object");
         assert_eq!(v["supervisor_final_state"], "stopped", "{v}");
         assert!(v["fault_reason"].is_null());

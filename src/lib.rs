@@ -5,10 +5,13 @@
 //! user can depend on `rollbase-control` alone without pulling IO:
 //!
 //! - [`commands`]: motion commands as JSON Lines (command files, stdin);
-//! - [`record`]: MCAP recordings of runs;
-//! - [`plot`]: PNG plots of a recording.
+//! - [`record`]: recordings of runs as ROS 2 bags (MCAP, CDR), and their recovery;
+//! - [`plot`]: PNG plots of a recording;
+//! - [`ros2`]: rollbase as a ROS 2 node over DDS (no ROS installation needed), and the ROS 2
+//!   message types the recordings share.
 #![deny(missing_docs)]
 
 pub mod commands;
 pub mod plot;
 pub mod record;
+pub mod ros2;

@@ -31,8 +31,12 @@
 //! still drawn, with no text at all, and [`PlotReport::labelled`] is `false` (print
 //! [`FONT_HINT`]).
 //!
-//! Non-finite and missing values (JSON `null`) are tolerated everywhere: lines are broken at
-//! them, ranges ignore them.
+//! Non-finite and missing values are tolerated everywhere: lines are broken at them, ranges
+//! ignore them. Values beyond ±[`ABSURD`] are left out the same way and named in
+//! [`PlotReport::ignored`] (a damaged or meaningless value must neither stretch a figure to
+//! nothing nor crash the plotting library). The recording is read with its chunk CRCs checked
+//! ([`crate::record::read_recording`]): a damaged file is an error, not a plot of wrong data;
+//! devices, pipes and files too large to load are refused before reading.
 
 use crate::record::{read_recording, RecordError};
 use plotters::coord::types::RangedCoordf64;
@@ -120,7 +124,15 @@ pub struct PlotReport {
     pub labelled: bool,
     /// Figures not drawn because the recording lacks their data, as "file: reason".
     pub skipped: Vec<String>,
+    /// Values left out because they are absurd (beyond ±[`ABSURD`]), one line per topic and
+    /// field naming the first such value and its cycle.
+    pub ignored: Vec<String>,
 }
+
+/// Largest magnitude a plotted value may have (m, rad, s, rad/s, µs): beyond it a value is
+/// damaged or meaningless, is left out of the figures and reported in
+/// [`PlotReport::ignored`].
+pub const ABSURD: f64 = 1e9;
 
 /// The TrueType font registered for labels, if one was found (looked up once per process:
 /// `$ROLLBASE_FONT`, then standard Debian/Fedora/Arch paths). A file that exists but is not a
@@ -160,7 +172,7 @@ pub fn plot_recording(mcap: &Path, out_dir: &Path) -> Result<PlotReport, PlotErr
 fn plot_with_style(mcap: &Path, out_dir: &Path, style: Style) -> Result<PlotReport, PlotError> {
     let src = mcap.display().to_string();
     let msgs = read_recording(mcap)?;
-    let data = Data::parse(&msgs);
+    let (data, ignored) = Data::parse(&msgs);
     if data.pose.is_empty() {
         return Err(PlotError::MissingTopic {
             path: src,
@@ -176,6 +188,7 @@ fn plot_with_style(mcap: &Path, out_dir: &Path, style: Style) -> Result<PlotRepo
         files: Vec::new(),
         labelled: style.family.is_some(),
         skipped: Vec::new(),
+        ignored,
     };
     type Figure = fn(&Data, &Style, &Ctx) -> Result<(), PlotError>;
     let figures: [(&str, Option<&str>, Figure); 5] = [
@@ -204,7 +217,21 @@ fn plot_with_style(mcap: &Path, out_dir: &Path, style: Style) -> Result<PlotRepo
             src: src.clone(),
             file: file.clone(),
         };
-        draw(&data, &style, &ctx)?;
+        // The data are validated before drawing; should the plotting library still panic on
+        // some input, the figure fails with an error instead of the process.
+        let drawn =
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| draw(&data, &style, &ctx)));
+        match drawn {
+            Ok(r) => r?,
+            Err(p) => {
+                let what = p
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| p.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "unknown panic".into());
+                return Err(ctx.err(format!("the plotting library failed: {what}")));
+            }
+        }
         report.files.push(file);
     }
     Ok(report)
@@ -214,15 +241,68 @@ fn plot_with_style(mcap: &Path, out_dir: &Path, style: Style) -> Result<PlotRepo
 // Data extraction
 // ---------------------------------------------------------------------------------------------
 
-fn num(v: &Value, key: &str) -> f64 {
-    v.get(key).and_then(Value::as_f64).unwrap_or(f64::NAN)
+/// Collects absurd values per (topic, field): count, first cycle, first value.
+#[derive(Default)]
+struct Problems(std::collections::BTreeMap<(String, String), (u64, Option<u64>, f64)>);
+
+impl Problems {
+    /// `x` if it is missing (NaN), infinite (as recorded for "none") or plausible, else NaN
+    /// and the value is noted.
+    fn check(&mut self, topic: &str, key: &str, cycle: Option<u64>, x: f64) -> f64 {
+        if x.is_finite() && x.abs() > ABSURD {
+            let e = self
+                .0
+                .entry((topic.to_string(), key.to_string()))
+                .or_insert((0, cycle, x));
+            e.0 += 1;
+            f64::NAN
+        } else {
+            x
+        }
+    }
+
+    fn lines(self) -> Vec<String> {
+        self.0
+            .into_iter()
+            .map(|((topic, key), (n, cycle, x))| {
+                let at = cycle
+                    .map(|c| format!("cycle {c}"))
+                    .unwrap_or("a message".into());
+                format!(
+                    "{topic} {key}: {n} value(s) beyond ±{ABSURD:e} left out (first at {at}: {x:e})"
+                )
+            })
+            .collect()
+    }
 }
 
-fn nums(v: &Value, key: &str) -> Vec<f64> {
-    v.get(key)
-        .and_then(Value::as_array)
-        .map(|a| a.iter().map(|x| x.as_f64().unwrap_or(f64::NAN)).collect())
-        .unwrap_or_default()
+/// A field's number, checked; JSON null and a missing field are NaN.
+struct Fields<'a> {
+    topic: &'a str,
+    v: &'a Value,
+    cycle: Option<u64>,
+}
+
+impl Fields<'_> {
+    fn num(&self, p: &mut Problems, key: &str) -> f64 {
+        let x = self.v.get(key).and_then(Value::as_f64).unwrap_or(f64::NAN);
+        p.check(self.topic, key, self.cycle, x)
+    }
+
+    fn nums(&self, p: &mut Problems, key: &str) -> Vec<f64> {
+        self.v
+            .get(key)
+            .and_then(Value::as_array)
+            .map(|a| {
+                a.iter()
+                    .map(|x| {
+                        let x = x.as_f64().unwrap_or(f64::NAN);
+                        p.check(self.topic, key, self.cycle, x)
+                    })
+                    .collect()
+            })
+            .unwrap_or_default()
+    }
 }
 
 fn cycle_of(v: &Value) -> Option<u64> {
@@ -292,7 +372,7 @@ const CYCLE_TOPICS: [&str; 6] = [
 ];
 
 impl Data {
-    fn parse(msgs: &[(String, u64, Value)]) -> Self {
+    fn parse(msgs: &[(String, u64, Value)]) -> (Self, Vec<String>) {
         let t0 = msgs
             .iter()
             .filter(|(topic, _, _)| CYCLE_TOPICS.contains(&topic.as_str()))
@@ -310,32 +390,58 @@ impl Data {
             timing: Vec::new(),
             has_truth: false,
         };
+        let mut p = Problems::default();
         for (topic, log_ns, v) in msgs {
             let t = log_ns.saturating_sub(t0) as f64 * 1e-9;
+            let f = Fields {
+                topic,
+                v,
+                cycle: cycle_of(v),
+            };
             match topic.as_str() {
                 "/pose" => {
-                    let truth = [num(v, "true_x"), num(v, "true_y"), num(v, "true_theta")];
+                    let truth = [
+                        f.num(&mut p, "true_x"),
+                        f.num(&mut p, "true_y"),
+                        f.num(&mut p, "true_theta"),
+                    ];
                     d.has_truth |= truth[0].is_finite() && truth[1].is_finite();
                     d.pose.push(PoseRow {
                         t,
-                        cycle: cycle_of(v),
-                        est: [num(v, "x"), num(v, "y"), num(v, "theta")],
+                        cycle: f.cycle,
+                        est: [
+                            f.num(&mut p, "x"),
+                            f.num(&mut p, "y"),
+                            f.num(&mut p, "theta"),
+                        ],
                         truth,
-                        true_legs: nums(v, "true_legs"),
+                        true_legs: f.nums(&mut p, "true_legs"),
                     });
                 }
                 "/reference" => {
-                    if let Some(c) = cycle_of(v) {
+                    if let Some(c) = f.cycle {
                         d.reference_by_cycle.insert(c, d.reference.len());
                     }
-                    d.reference.push(RefRow { z: nums(v, "z") });
+                    d.reference.push(RefRow {
+                        z: f.nums(&mut p, "z"),
+                    });
                 }
                 "/feedback" => {
                     if let (Some(c), Some(ws)) =
-                        (cycle_of(v), v.get("wheels").and_then(Value::as_array))
+                        (f.cycle, v.get("wheels").and_then(Value::as_array))
                     {
-                        d.feedback_legs
-                            .insert(c, ws.iter().map(|w| num(w, "leg")).collect());
+                        let legs = ws
+                            .iter()
+                            .map(|w| {
+                                Fields {
+                                    topic,
+                                    v: w,
+                                    cycle: Some(c),
+                                }
+                                .num(&mut p, "leg")
+                            })
+                            .collect();
+                        d.feedback_legs.insert(c, legs);
                     }
                 }
                 "/command" => d.command.push(CmdRow {
@@ -345,11 +451,11 @@ impl Data {
                         .and_then(Value::as_str)
                         .unwrap_or("?")
                         .to_string(),
-                    wheel_speed: nums(v, "wheel_speed"),
-                    steer_rate: nums(v, "steer_rate"),
+                    wheel_speed: f.nums(&mut p, "wheel_speed"),
+                    steer_rate: f.nums(&mut p, "steer_rate"),
                 }),
                 "/icr" => {
-                    if let Some(c) = cycle_of(v) {
+                    if let Some(c) = f.cycle {
                         d.icr_by_cycle.insert(c, d.icr.len());
                     }
                     let at_inf = v
@@ -359,21 +465,21 @@ impl Data {
                     let icr = if at_inf {
                         [f64::NAN; 2]
                     } else {
-                        [num(v, "icr_x"), num(v, "icr_y")]
+                        [f.num(&mut p, "icr_x"), f.num(&mut p, "icr_y")]
                     };
                     d.icr.push(IcrRow {
                         t,
                         icr,
                         active: v.get("active").and_then(Value::as_bool).unwrap_or(false),
-                        min_distance: num(v, "min_distance"),
-                        d_start: nums(v, "d_start"),
-                        wheel_x: nums(v, "wheel_x"),
-                        wheel_y: nums(v, "wheel_y"),
+                        min_distance: f.num(&mut p, "min_distance"),
+                        d_start: f.nums(&mut p, "d_start"),
+                        wheel_x: f.nums(&mut p, "wheel_x"),
+                        wheel_y: f.nums(&mut p, "wheel_y"),
                     });
                 }
                 "/timing" => d.timing.push(TimingRow {
-                    period_us: num(v, "period_us"),
-                    compute_us: num(v, "compute_us"),
+                    period_us: f.num(&mut p, "period_us"),
+                    compute_us: f.num(&mut p, "compute_us"),
                     deadline_miss: v
                         .get("deadline_miss")
                         .and_then(Value::as_bool)
@@ -385,7 +491,7 @@ impl Data {
         // MCAP stream order is the file order; one writer writes in time order, but be safe.
         d.pose.sort_by(|a, b| a.t.total_cmp(&b.t));
         d.command.sort_by(|a, b| a.t.total_cmp(&b.t));
-        d
+        (d, p.lines())
     }
 
     /// The pose a figure should show for a row: true when the run has truth, else estimated.
@@ -1261,6 +1367,13 @@ mod tests {
     /// A circle of radius 1.5 m at 0.3 m/s with the heading following the tangent, 4 wheels,
     /// legs ramping, a small estimation offset and truth. `odd` sprinkles NaN/∞ in.
     fn write_circle(path: &Path, cycles: u64, odd: bool) {
+        write_circle_with(path, cycles, odd, &|_, _, _| {});
+    }
+
+    type Tweak = dyn Fn(u64, &mut CycleRecord, &mut [[f64; 2]; 4]);
+
+    /// [`write_circle`] with `tweak` applied to each cycle before it is written.
+    fn write_circle_with(path: &Path, cycles: u64, odd: bool, tweak: &Tweak) {
         let mut rec = McapRecorder::create(path, &BTreeMap::new()).unwrap();
         let (rad, v) = (1.5, 0.3);
         for k in 0..cycles {
@@ -1315,6 +1428,7 @@ mod tests {
             if odd && k % 29 == 5 {
                 wheels[1] = [f64::NAN, 0.2];
             }
+            tweak(k, &mut r, &mut wheels);
             rec.write_cycle(&r, &wheels).unwrap();
         }
         rec.finish().unwrap();
@@ -1388,6 +1502,86 @@ mod tests {
         let report = plot_recording(&mcap, &out).unwrap();
         assert_five_pngs(&report, &out);
         let _ = std::fs::remove_dir_all(dir);
+    }
+
+    /// Issue 19: `/icr` holding 1e308 (wheel points, field radii) made plotters panic in
+    /// `icr_body.png` (exit 101, 4 of 5 figures). Now the values are left out and named.
+    #[test]
+    fn absurd_icr_values_are_left_out_and_named_instead_of_a_panic() {
+        let dir = tmp("absurd");
+        let mcap = dir.join("run.mcap");
+        write_circle_with(&mcap, 300, false, &|k, r, wheels| {
+            if k == 150 {
+                r.avoidance.d_start[0] = 1e308;
+                wheels[2] = [1e308, -1e308];
+                r.avoidance.icr_body = Some([1e308, 1e308]);
+            }
+        });
+        let out = dir.join("plots");
+        let report = plot_recording(&mcap, &out).unwrap();
+        assert_five_pngs(&report, &out);
+        let all = report.ignored.join("\n");
+        for field in ["d_start", "wheel_x", "wheel_y", "icr_x", "icr_y"] {
+            assert!(
+                report
+                    .ignored
+                    .iter()
+                    .any(|l| l.starts_with(&format!("/icr {field}: 1 value(s)"))
+                        && l.contains("cycle 150")),
+                "{field} not reported in:\n{all}"
+            );
+        }
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
+    /// Issue 19: a flipped digit inside a chunk was plotted (the chunk CRC was not checked).
+    #[test]
+    fn a_damaged_chunk_is_an_error_naming_the_crc() {
+        let dir = tmp("crc");
+        let mcap = dir.join("run.mcap");
+        write_circle(&mcap, 200, false);
+        let mut bytes = std::fs::read(&mcap).unwrap();
+        // A timing value of the file (4000 + 30·((k·7919) mod 13) µs): change one bit of it.
+        let needle = 4000.0f64.to_le_bytes();
+        let at = bytes
+            .windows(8)
+            .position(|w| w == needle)
+            .expect("value in file");
+        bytes[at + 5] ^= 0x10;
+        std::fs::write(&mcap, &bytes).unwrap();
+        let err = plot_recording(&mcap, &dir.join("plots")).unwrap_err();
+        assert!(
+            matches!(err, PlotError::Record(RecordError::Format { .. })),
+            "{err:?}"
+        );
+        let msg = err.to_string();
+        assert!(
+            msg.contains("chunk CRC mismatch") && msg.contains("run.mcap"),
+            "{msg}"
+        );
+        assert!(
+            !dir.join("plots").exists(),
+            "nothing drawn from a damaged file"
+        );
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
+    /// Issue 19: `plot /dev/zero` read forever and ate memory.
+    #[test]
+    fn a_device_is_refused_before_reading() {
+        for dev in ["/dev/zero", "/dev/urandom"] {
+            if !Path::new(dev).exists() {
+                eprintln!("skipped: no {dev}");
+                continue;
+            }
+            let dir = tmp("dev");
+            let err = plot_recording(Path::new(dev), &dir.join("plots")).unwrap_err();
+            let msg = err.to_string();
+            assert!(
+                msg.contains("not a regular file") && msg.contains(dev),
+                "{msg}"
+            );
+        }
     }
 
     #[test]

@@ -38,6 +38,7 @@ macro_rules! err {
 }
 
 mod monitor;
+mod ros2cmd;
 mod rt;
 mod service;
 mod sinks;
@@ -81,6 +82,9 @@ pub enum CliError {
     /// Plotting failed.
     #[error(transparent)]
     Plot(#[from] rollbase::plot::PlotError),
+    /// The ROS 2 node could not start.
+    #[error(transparent)]
+    Ros2(#[from] rollbase::ros2::Ros2Error),
     /// A capture file could not be read.
     #[error("{path}: {message}")]
     File {
@@ -130,6 +134,14 @@ enum Command {
     Monitor(MonitorArgs),
     /// Plot a recording to PNG files.
     Plot(PlotArgs),
+    /// Rewrite a recording left without index and summary (killed writer) into a new file.
+    Recover(ros2cmd::RecoverArgs),
+    /// The ROS 2 node fed with a synthetic state (for the interop tests; needs a network).
+    #[command(hide = true)]
+    Ros2Selftest(ros2cmd::SelftestArgs),
+    /// Print every ROS 2 message definition rollbase uses, as JSON {name: full definition}.
+    #[command(hide = true)]
+    Ros2MsgDefinitions,
     /// Print the protocol as a DBC file (load it in cantools, SavvyCAN, …).
     Dbc,
     /// Print docs/protocol.md, generated from the protocol table.
@@ -224,10 +236,26 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
         Command::Drive(a) => service::drive(a),
         Command::Monitor(a) => monitor::monitor(a),
         Command::Bridge(a) => Ok(crate::bridge::run(a)?),
+        Command::Recover(a) => ros2cmd::recover(a),
+        Command::Ros2Selftest(a) => ros2cmd::selftest(a),
+        Command::Ros2MsgDefinitions => {
+            let defs: serde_json::Map<String, serde_json::Value> = rollbase::ros2::msg::ALL
+                .iter()
+                .map(|d| (d.name.to_string(), d.full_definition().into()))
+                .collect();
+            outln!("{}", serde_json::Value::Object(defs));
+            Ok(0)
+        }
         Command::Plot(a) => {
             let rep = rollbase::plot::plot_recording(&a.file, &a.out)?;
             for f in &rep.files {
                 outln!("{}", f.display());
+            }
+            for s in &rep.skipped {
+                errln!("skipped {s}");
+            }
+            for w in &rep.ignored {
+                errln!("warning: {w}");
             }
             if !rep.labelled {
                 errln!("note: no TTF font found, plots have no text; install fonts-dejavu-core or set ROLLBASE_FONT");
@@ -404,4 +432,3 @@ pub(crate) fn install_signals(stop: Arc<AtomicBool>, action: SignalAction) -> Ar
     });
     came
 }
-

@@ -11,7 +11,7 @@
 //!   the caller; the cycle keeps its own rhythm, the summary is still printed) and its cause
 //!   is reported; what was recorded up to then is finished and kept under the target name.
 
-use rollbase::record::McapRecorder;
+use rollbase::record::{McapRecorder, RecordOptions};
 use rollbase_control::record::CycleRecord;
 use rollbase_control::runtime::RunSummary;
 use rollbase_driver::candump::{CandumpWriter, LogEntry};
@@ -178,7 +178,15 @@ impl Sinks {
             Some(p) => {
                 make_parent(p)?;
                 let tmp = partial_path(p);
-                Some((McapRecorder::create(&tmp, &meta)?, tmp, p.clone()))
+                let rec = McapRecorder::create_with(
+                    &tmp,
+                    &meta,
+                    &RecordOptions {
+                        can_interface: iface.to_string(),
+                        ..Default::default()
+                    },
+                )?;
+                Some((rec, tmp, p.clone()))
             }
             None => None,
         };
@@ -319,6 +327,9 @@ impl Sinks {
                     if !quiet {
                         for f in &rep.files {
                             errln!("plot: {}", f.display());
+                        }
+                        for w in &rep.ignored {
+                            errln!("plot warning: {w}");
                         }
                     }
                 }
