@@ -14,6 +14,7 @@ pub mod ideal_plant;
 pub mod kinematic;
 pub mod link;
 pub mod model;
+pub mod num;
 pub mod odometry;
 pub mod platform;
 pub mod ports;

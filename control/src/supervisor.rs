@@ -260,7 +260,7 @@ pub struct SupervisorConfig {
 impl Default for SupervisorConfig {
     fn default() -> Self {
         Self {
-            stale_cycles: 3,
+            stale_cycles: crate::platform::TOLERATED_LOST_CYCLES,
             stale_data_cycles: 8,
             align_tolerance: 0.5f64.to_radians(),
             align_timeout_cycles: 2500,

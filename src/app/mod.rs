@@ -14,6 +14,7 @@ use clap::{Args, Parser, Subcommand};
 use rollbase_control::runtime::RuntimeConfig;
 use rollbase_control::scenario::{self, Scenario};
 use rollbase_control::{Platform, Protocol};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -291,7 +292,17 @@ pub(crate) fn unix_now() -> f64 {
         .unwrap_or(0.0)
 }
 
-pub(crate) fn install_ctrl_c(stop: Arc<AtomicBool>) {
+/// What Ctrl-C stops: said to the operator when it arrives.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum StopKind {
+    /// A run that drives the platform: Ctrl-C is a controlled stop (decelerate, then exit).
+    Platform,
+    /// A tool that only listens (the monitor): nothing moves, Ctrl-C just ends it.
+    Listener,
+}
+
+/// Sets `stop` on the first Ctrl-C and tells the operator what that does (`kind`).
+pub(crate) fn install_ctrl_c(stop: Arc<AtomicBool>, kind: StopKind) {
     std::thread::spawn(move || {
         let Ok(rt) = tokio::runtime::Builder::new_current_thread()
             .enable_all()
@@ -301,7 +312,12 @@ pub(crate) fn install_ctrl_c(stop: Arc<AtomicBool>) {
         };
         rt.block_on(async {
             if tokio::signal::ctrl_c().await.is_ok() {
-                eprintln!("\nCtrl-C: controlled stop (Ctrl-C again is ignored; the platform is decelerating)");
+                let msg = match kind {
+                    StopKind::Platform => "\nCtrl-C: controlled stop (Ctrl-C again is ignored; the platform is decelerating)",
+                    StopKind::Listener => "\nCtrl-C: stopping the monitor (it only listens: nothing on the bus is driven or stopped by it)",
+                };
+                // A closed stderr must not stop the stop.
+                let _ = writeln!(std::io::stderr(), "{msg}");
                 stop.store(true, Ordering::SeqCst);
             }
         });

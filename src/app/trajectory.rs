@@ -16,7 +16,9 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::sinks::{exit_code, print_summary, Sinks};
-use super::{install_ctrl_c, load_platform_as, runtime_config, unix_now, CliError, CommonRun};
+use super::{
+    install_ctrl_c, load_platform_as, runtime_config, unix_now, CliError, CommonRun, StopKind,
+};
 
 #[derive(Args, Debug)]
 pub(crate) struct DemoArgs {
@@ -152,7 +154,7 @@ pub(crate) fn run_demo_realtime(
     let mut sim_node = vbus.node("simulator");
     let stop = Arc::new(AtomicBool::new(false));
     let sim_stop = Arc::new(AtomicBool::new(false));
-    install_ctrl_c(stop.clone());
+    install_ctrl_c(stop.clone(), StopKind::Platform);
     let sim_thread = {
         let sim_stop = sim_stop.clone();
         std::thread::Builder::new()
@@ -247,7 +249,7 @@ pub(crate) fn run_bus(a: RunArgs) -> Result<i32, CliError> {
     // The interface name as candump logs it ("vcan0", also for socketcand://HOST:PORT/vcan0).
     let mut sinks = Sinks::new(&name, &a.common, canbus.name(), origin, meta)?;
     let stop = Arc::new(AtomicBool::new(false));
-    install_ctrl_c(stop.clone());
+    install_ctrl_c(stop.clone(), StopKind::Platform);
     if let Some(d) = a.duration {
         if !(d.is_finite() && d > 0.0) {
             return Err(CliError::Usage(format!(

@@ -168,7 +168,7 @@ impl FaultSchedule {
     /// Reads, parses and validates a schedule file.
     pub fn load(path: impl AsRef<Path>) -> Result<Self, SimError> {
         let path = path.as_ref();
-        let text = read_file(path)?;
+        let text = read_file(path, "fault file")?;
         Self::from_toml_str(&text).map_err(|e| match e {
             SimError::Parse { message, .. } => SimError::Parse {
                 what: format!("fault file {}", path.display()),

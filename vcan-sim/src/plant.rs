@@ -226,7 +226,7 @@ impl PlantConfig {
     /// Reads, parses and validates a plant configuration file.
     pub fn load(path: impl AsRef<Path>) -> Result<Self, SimError> {
         let path = path.as_ref();
-        let text = read_file(path)?;
+        let text = read_file(path, "plant file")?;
         Self::from_toml_str(&text).map_err(|e| match e {
             SimError::Parse { message, .. } => SimError::Parse {
                 what: format!("plant file {}", path.display()),

@@ -29,11 +29,11 @@ pub fn check_feasible(p: &Platform, traj: &dyn Trajectory) -> Result<(), Runtime
     let n = p.n().min(MAX_WHEELS).min(traj.n_legs());
     let dt = p.dt();
     let d = traj.duration();
-    let steps = if d.is_finite() && d > 0.0 {
-        (d / dt).ceil().min(1e7) as u64
-    } else {
-        0
-    };
+    if !(d.is_finite() && (0.0..=crate::trajectory::MAX_WAYPOINT_TIME_S).contains(&d)) {
+        return Err(RuntimeError::Duration { duration: d });
+    }
+    // At most 10 h × 333 Hz = 12 million samples: every sample of every valid trajectory.
+    let steps = (d / dt).ceil() as u64;
     for k in 0..=steps {
         let t = (k as f64 * dt).min(d.max(0.0));
         let r = traj.sample(t);
@@ -826,6 +826,19 @@ fn icr_record(r: &ReferenceSample, wheels: &[[f64; 2]]) -> AvoidanceRecord {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_infeasible_tiny_limit_is_printed_readably() {
+        let mut p = Platform::justin();
+        p.limits.leg_speed = 1e-300;
+        let traj = crate::scenario::trajectory(crate::scenario::Scenario::Seed000, &p).unwrap();
+        let e = CycleCore::new(p, traj, super::super::RuntimeConfig::default())
+            .err()
+            .expect("infeasible");
+        let m = e.to_string();
+        assert!(m.contains("but `limits.leg_speed` = 1.000e-300;"), "{m}");
+        assert!(!m.contains("needs 0.000 "), "{m}");
+    }
 
     #[test]
     fn icr_of_a_pure_rotation_is_the_origin_and_translation_is_at_infinity() {

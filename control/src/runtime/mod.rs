@@ -38,6 +38,7 @@ pub use self::realtime::{realtime_setup, run_realtime, RealtimeOptions, Realtime
 pub use self::summary::{percentile, RunSummary};
 
 use crate::avoidance::AvoidanceConfig;
+use crate::num::{Fixed3, Num};
 use crate::supervisor::SupervisorConfig;
 use rollbase_driver::bus::BusError;
 use rollbase_driver::rx::CounterPolicy;
@@ -113,7 +114,7 @@ pub enum RuntimeError {
     #[error("bus error: {0}")]
     Bus(#[from] BusError),
     /// The trajectory needs more than a limit of the platform allows.
-    #[error("infeasible trajectory: at t = {t:.3} s wheel {} needs {value:.3} but `limits.{field}` = {limit:.3}; slow the trajectory down or raise the limit in the platform file", wheel + 1)]
+    #[error("infeasible trajectory: at t = {} s wheel {} needs {} but `limits.{field}` = {}; slow the trajectory down or raise the limit in the platform file", Fixed3(*t), wheel + 1, Fixed3(*value), Fixed3(*limit))]
     Infeasible {
         /// The limit's field name in the platform file.
         field: &'static str,
@@ -125,5 +126,21 @@ pub enum RuntimeError {
         value: f64,
         /// The limit.
         limit: f64,
+    },
+    /// The trajectory's duration is not a finite time the runtime can check and run.
+    #[error("the trajectory lasts {} s: it must be a finite time of at most {} s (10 h); split longer runs", Num(*duration), crate::trajectory::MAX_WAYPOINT_TIME_S)]
+    Duration {
+        /// The duration (s).
+        duration: f64,
+    },
+    /// A runtime option is out of its range.
+    #[error("runtime option `{field}` = {value}: {reason}")]
+    Option {
+        /// The option's name (e.g. `feedback_window`, `supervisor.follow_timeout`).
+        field: &'static str,
+        /// The value, printed.
+        value: String,
+        /// What is wrong and what is expected.
+        reason: String,
     },
 }
