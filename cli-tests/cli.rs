@@ -482,3 +482,50 @@ fn ctrl_c_in_the_monitor_does_not_claim_to_stop_the_platform() {
     );
     assert!(text.contains("only listens"), "{text}");
 }
+
+#[test]
+fn a_demo_whose_motors_do_not_respond_fails_with_a_following_error() {
+    let _serial = serial();
+    let dir = std::env::temp_dir().join(format!("rollbase-cli-follow-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let plant = dir.join("dead.toml");
+    std::fs::write(&plant, "drive_time_constant = 1e300\n").unwrap();
+    let text = String::from_utf8(
+        rollbase()
+            .args(["config", "default"])
+            .output()
+            .unwrap()
+            .stdout,
+    )
+    .unwrap();
+    let heavy = dir.join("heavy.toml");
+    assert!(text.contains("mass = 150.0"), "{text}");
+    std::fs::write(&heavy, text.replacen("mass = 150.0", "mass = 1e308", 1)).unwrap();
+    for (opt, file) in [("--plant", &plant), ("--config", &heavy)] {
+        for profile in ["native", "cia402"] {
+            let out = output_within(
+                {
+                    let mut c = rollbase();
+                    c.args(["demo", "--lockstep", "--profile", profile, opt])
+                        .arg(file);
+                    c
+                },
+                Duration::from_secs(60),
+            );
+            let stdout = String::from_utf8_lossy(&out.stdout);
+            assert_eq!(
+                out.status.code(),
+                Some(1),
+                "{opt} {profile}: a platform that does not move must fail the run\n{stdout}\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            assert!(
+                stdout.contains("fault: following error: wheel")
+                    && stdout.contains("supervisor_final_state")
+                    && stdout.contains("fault"),
+                "{opt} {profile}:\n{stdout}"
+            );
+        }
+    }
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -129,6 +129,7 @@ enum EventKind {
     MotorFault,
     EncoderStuck,
     EncoderJump(f64),
+    DriveGain(f64),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -274,6 +275,12 @@ impl Simulator {
             wheel: wheel_of(m.node),
             node: m.node,
             kind: EventKind::EncoderJump(m.amount),
+        }));
+        events.extend(f.drive_gain.iter().map(|g| Event {
+            at: g.at,
+            wheel: wheel_of(g.node),
+            node: g.node,
+            kind: EventKind::DriveGain(g.gain),
         }));
         events.sort_by(|a, b| a.at.total_cmp(&b.at));
         let model = FaultModel {
@@ -526,6 +533,7 @@ impl Simulator {
                 },
                 EventKind::EncoderStuck => self.plant.set_encoder_stuck(ev.wheel, true),
                 EventKind::EncoderJump(a) => self.plant.add_steer_encoder_offset(ev.wheel, a),
+                EventKind::DriveGain(g) => self.plant.set_drive_gain(ev.wheel, g),
             }
         }
     }

@@ -16,7 +16,7 @@ use crate::supervisor::{
 use crate::trajectory::Trajectory;
 use crate::types::{Command, Measurement, ReferenceSample, MAX_WHEELS};
 use rollbase_driver::canopen::config::Role;
-use rollbase_driver::codec::{Setpoint, SetpointFlags};
+use rollbase_driver::codec::{ModuleState, Setpoint, SetpointFlags};
 use rollbase_driver::frame::{CanFrame, FrameBuf};
 
 /// Checks, before anything starts, that the reference stays inside the platform's wheel
@@ -156,6 +156,7 @@ impl CycleCore {
         cfg: RuntimeConfig,
     ) -> Result<Self, RuntimeError> {
         platform.validate()?;
+        cfg.validate(&platform)?;
         let n = platform.n();
         if trajectory.n_legs() != n {
             return Err(RuntimeError::LegCount {
@@ -168,10 +169,12 @@ impl CycleCore {
         let mut nodes = [0u8; MAX_WHEELS];
         let mut steer_nodes = [0u8; MAX_WHEELS];
         let mut leg_nodes = [0u8; MAX_WHEELS];
+        let mut drive_nodes = [0u8; MAX_WHEELS];
         for i in 0..n.min(MAX_WHEELS) {
             nodes[i] = link.wheel_node(i);
             steer_nodes[i] = link.stream_node(i, Role::Steer);
             leg_nodes[i] = link.stream_node(i, Role::Leg);
+            drive_nodes[i] = link.stream_node(i, Role::Drive);
         }
         let r0 = trajectory.sample(0.0);
         let start = r0.pose();
@@ -182,6 +185,7 @@ impl CycleCore {
         let avoidance = cfg.avoidance.map(|a| Avoidance::new(&platform, a));
         let mut sup = Supervisor::new(&platform, cfg.supervisor);
         sup.set_stream_nodes(steer_nodes, leg_nodes);
+        sup.set_drive_nodes(drive_nodes);
         let mut record = CycleRecord::new(0, 0.0, n);
         record.nodes = nodes;
         let mut legs = [0.0; MAX_WHEELS];
@@ -595,7 +599,22 @@ impl CycleCore {
             stop_requested: self.stop_requested,
             ..Default::default()
         };
+        if self.sup.state() == SupervisorState::Stopping {
+            // Arrival check at the end of a trajectory run: the estimate against the goal.
+            let goal = self.trajectory.sample(self.trajectory.duration());
+            let distance = (goal.z[0] - odo.pose.x).hypot(goal.z[1] - odo.pose.y);
+            let heading = crate::angle::diff(goal.z[2], odo.pose.theta);
+            let mut worst = (0usize, 0.0f64);
+            for i in 0..self.n {
+                let e = meas.wheels[i].leg - goal.z[3 + i];
+                if e.abs() > worst.1.abs() || !e.is_finite() {
+                    worst = (i, e);
+                }
+            }
+            sup_in.goal_error = Some((distance, heading, worst.0, worst.1));
+        }
         for i in 0..self.n {
+            sup_in.enabled[i] = self.link.wheel_state(i) == Some(ModuleState::Enabled);
             sup_in.wheel_speed[i] = meas.wheels[i].wheel_speed;
             sup_in.steer_rate[i] = meas.wheels[i].steer_rate;
             match self.link.wheel_fault(i) {
@@ -728,6 +747,9 @@ impl CycleCore {
                 },
             };
         }
+        // What the drives are being told, for the following-error check of the next cycles:
+        // a wheel told to disable or brake is going to rest.
+        self.sup.note_command(&cmd, &[enable && !brake; MAX_WHEELS]);
         out.clear();
         self.link.finish_cycle(t, &self.setpoints[..self.n], out);
         let settled = matches!(

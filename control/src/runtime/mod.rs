@@ -96,6 +96,37 @@ impl Default for RuntimeConfig {
     }
 }
 
+impl RuntimeConfig {
+    /// Checks the options against the platform's control period: the feedback window must
+    /// leave the cycle its compute budget, the supervisor's thresholds their ranges. Errors
+    /// name the option, the value and the bound.
+    pub fn validate(&self, p: &crate::platform::Platform) -> Result<(), RuntimeError> {
+        let dt = p.dt();
+        let max_window = dt - crate::platform::CYCLE_COMPUTE_BUDGET_S;
+        if !(self.feedback_window.is_finite()
+            && self.feedback_window > 0.0
+            && self.feedback_window <= max_window)
+        {
+            return Err(RuntimeError::Option {
+                field: "feedback_window",
+                value: Num(self.feedback_window).to_string(),
+                reason: format!(
+                    "must be > 0 and at most the period minus the compute budget ({} s at cycle_hz = {})",
+                    Num(max_window),
+                    Num(p.cycle_hz)
+                ),
+            });
+        }
+        self.supervisor
+            .validate(dt)
+            .map_err(|(field, value, reason)| RuntimeError::Option {
+                field,
+                value,
+                reason,
+            })
+    }
+}
+
 /// Errors that stop a run before or while it starts.
 #[derive(Debug, thiserror::Error)]
 pub enum RuntimeError {
