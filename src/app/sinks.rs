@@ -6,6 +6,7 @@ use rollbase_control::runtime::RunSummary;
 use rollbase_driver::candump::{CandumpWriter, LogEntry};
 use rollbase_driver::frame::CanFrame;
 use std::collections::BTreeMap;
+use std::io::Write;
 use std::time::Duration;
 
 use super::{CliError, CommonRun};
@@ -144,12 +145,24 @@ impl Sinks {
     }
 }
 
-pub(crate) fn exit_code(s: &RunSummary) -> i32 {
-    if s.final_state == "stopped" {
-        0
-    } else {
-        1
+/// 0 when the run ended in Stopped (the controller's arrival check passed on its estimate)
+/// and, where the simulator's ground truth is known (the demo), the true final position is
+/// within `arrive_position` (m) of the goal too; 1 otherwise (says why when only the truth
+/// disagrees: the estimate drifted).
+pub(crate) fn exit_code(s: &RunSummary, arrive_position: f64) -> i32 {
+    if s.final_state != "stopped" {
+        return 1;
     }
+    let arrived = s.final_position_error_m <= arrive_position; // NaN: not arrived
+    if s.against_truth && !arrived {
+        let _ = writeln!(
+            std::io::stderr(),
+            "did not arrive: the controller's estimate says the platform reached the goal, but the simulator's ground truth puts it {:.3} m away (more than arrive_position = {arrive_position} m): the odometry drifted; the run failed",
+            s.final_position_error_m
+        );
+        return 1;
+    }
+    0
 }
 
 pub(crate) fn print_summary(
@@ -195,5 +208,28 @@ pub(crate) fn print_summary(
     println!("  {:<28} {:>12}", "supervisor_final_state", s.final_state);
     if let Some(r) = reason {
         println!("  fault: {r}");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_run_fails_when_it_did_not_stop_or_the_truth_says_it_did_not_arrive() {
+        let mut s = RunSummary::new("seed000");
+        s.final_state = "fault".into();
+        assert_eq!(exit_code(&s, 0.05), 1);
+        s.final_state = "stopped".into();
+        s.final_position_error_m = 0.2;
+        // On hardware (no truth) the controller's own arrival check decided: stopped is 0.
+        assert_eq!(exit_code(&s, 0.05), 0);
+        // In simulation the truth must agree.
+        s.against_truth = true;
+        assert_eq!(exit_code(&s, 0.05), 1);
+        s.final_position_error_m = 0.001;
+        assert_eq!(exit_code(&s, 0.05), 0);
+        s.final_position_error_m = f64::NAN;
+        assert_eq!(exit_code(&s, 0.05), 1);
     }
 }

@@ -126,7 +126,10 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
         core.supervisor().reason(),
         recorded.as_ref(),
     );
-    Ok(exit_code(&summary))
+    Ok(exit_code(
+        &summary,
+        core.config().supervisor.arrive_position,
+    ))
 }
 
 pub(crate) fn cfg_controller(
@@ -303,5 +306,8 @@ pub(crate) fn run_bus(a: RunArgs) -> Result<i32, CliError> {
         core.supervisor().reason(),
         recorded.as_ref(),
     );
-    Ok(exit_code(&summary))
+    Ok(exit_code(
+        &summary,
+        core.config().supervisor.arrive_position,
+    ))
 }
