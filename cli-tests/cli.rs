@@ -381,3 +381,280 @@ fn bridge_stops_on_sigterm_like_ctrl_c_with_its_totals() {
         "{log}"
     );
 }
+
+/// `rollbase` with a 2 GiB address-space limit: a command that would read an endless input
+/// into memory fails fast instead of eating the machine (the pre-fix behaviour this guards).
+fn rollbase_limited() -> Command {
+    use std::os::unix::process::CommandExt;
+    let mut c = rollbase();
+    // SAFETY: setrlimit is async-signal-safe and only affects the child.
+    unsafe {
+        c.pre_exec(|| {
+            let lim = libc::rlimit {
+                rlim_cur: 2 << 30,
+                rlim_max: 2 << 30,
+            };
+            libc::setrlimit(libc::RLIMIT_AS, &lim);
+            Ok(())
+        });
+    }
+    c
+}
+
+/// Runs `cmd` to its end within `limit` (killed and failed after that).
+fn output_within(mut cmd: Command, limit: Duration) -> std::process::Output {
+    let mut child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start rollbase");
+    let start = Instant::now();
+    loop {
+        if child.try_wait().expect("try_wait").is_some() {
+            return child.wait_with_output().expect("output");
+        }
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            let out = child.wait_with_output().expect("output");
+            panic!(
+                "{cmd:?} still running after {limit:?}\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn endless_input_files_are_refused_at_their_size_cap() {
+    let _serial = serial();
+    let cases: [(&[&str], &str); 6] = [
+        (&["config", "check", "/dev/zero"], "1 MiB"),
+        (&["demo", "--lockstep", "--config", "/dev/zero"], "1 MiB"),
+        (&["demo", "--lockstep", "--plant", "/dev/zero"], "1 MiB"),
+        (&["demo", "--lockstep", "--faults", "/dev/zero"], "1 MiB"),
+        (
+            &["run", "--bus", "vcan0", "--trajectory", "/dev/zero"],
+            "8 MiB",
+        ),
+        (&["monitor", "--candump", "/dev/zero"], "4096 bytes"),
+    ];
+    for (args, cap) in cases {
+        let mut c = rollbase_limited();
+        c.args(args);
+        let out = output_within(c, Duration::from_secs(20));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            out.status.code().is_some_and(|c| c != 0),
+            "{args:?}: exit {:?}\n{err}",
+            out.status
+        );
+        assert!(
+            err.contains("/dev/zero") && err.contains(cap),
+            "{args:?}: the error must name the file and the cap ({cap}):\n{err}"
+        );
+    }
+}
+
+#[test]
+fn cycle_rates_outside_the_timing_design_are_refused() {
+    let _serial = serial();
+    let dir = std::env::temp_dir().join(format!("rollbase-cli-hz-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let text = String::from_utf8(
+        rollbase()
+            .args(["config", "default"])
+            .output()
+            .unwrap()
+            .stdout,
+    )
+    .unwrap();
+    assert!(text.contains("cycle_hz = 250.0"), "{text}");
+    for (hz, bound) in [
+        ("0.001", "at least 80 Hz"),
+        ("10.0", "at least 80 Hz"),
+        ("1000.0", "at most 333 Hz"),
+    ] {
+        let path = dir.join(format!("hz-{hz}.toml"));
+        std::fs::write(
+            &path,
+            text.replacen("cycle_hz = 250.0", &format!("cycle_hz = {hz}"), 1),
+        )
+        .unwrap();
+        for args in [
+            vec!["config", "check"],
+            vec!["demo", "--lockstep", "--config"],
+        ] {
+            let out = output_within(
+                {
+                    let mut c = rollbase();
+                    c.args(&args).arg(&path);
+                    c
+                },
+                Duration::from_secs(20),
+            );
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(
+                !out.status.success(),
+                "cycle_hz = {hz} accepted by {args:?}"
+            );
+            assert!(
+                err.contains("cycle_hz") && err.contains(bound),
+                "cycle_hz = {hz}, {args:?}:\n{err}"
+            );
+        }
+    }
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn monitor_reports_file_line_numbers_and_goes_on_after_bad_lines() {
+    let _serial = serial();
+    let dir = std::env::temp_dir().join(format!("rollbase-cli-mon-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("bad.log");
+    let mut log = b"(1.000000) vcan0 080#00000033\n\n(1.000100) vcan0 zz#\n".to_vec();
+    log.extend_from_slice(b"(1.000200) vcan0 \xff\xfe#00\n");
+    log.extend_from_slice(b"(1.000300) vcan0 181#0011223344556677\n");
+    std::fs::write(&path, &log).unwrap();
+    let out = rollbase()
+        .args(["monitor", "--summary", "--candump"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(
+        lines.len(),
+        5,
+        "2 frames, 2 bad lines, the summary:\n{text}"
+    );
+    assert!(
+        lines[1].contains("candump log line 3,") && !lines[1].contains("line 1"),
+        "{text}"
+    );
+    assert!(
+        lines[2].contains("candump log line 4,") && lines[2].contains("UTF-8"),
+        "{text}"
+    );
+    assert!(
+        lines[3].contains(" 181 "),
+        "decoding went on after the bad lines:\n{text}"
+    );
+    assert!(lines[4].contains("unparsable lines: 2"), "{text}");
+    let out = rollbase()
+        .args(["monitor", "--json", "--candump"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let v: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("JSON line"))
+        .collect();
+    assert_eq!(v.len(), 4);
+    assert_eq!(v[1]["line"], 3);
+    assert!(
+        v[1]["error"].as_str().unwrap().contains("line 3,"),
+        "{}",
+        v[1]
+    );
+    assert_eq!(v[2]["line"], 4);
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn ctrl_c_in_the_monitor_does_not_claim_to_stop_the_platform() {
+    let _serial = serial();
+    let mut bridge = rollbase()
+        .args(["bridge", "--listen", "127.0.0.1:0"])
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .expect("start the bridge");
+    let mut err = std::io::BufReader::new(bridge.stderr.take().unwrap());
+    let mut line = String::new();
+    let addr = loop {
+        line.clear();
+        let n = std::io::BufRead::read_line(&mut err, &mut line).unwrap();
+        assert!(n > 0, "the bridge ended without saying where it listens");
+        if let Some(rest) = line.split("listening on ").nth(1) {
+            break rest.split_whitespace().next().unwrap().to_string();
+        }
+    };
+    let monitor = rollbase()
+        .args(["monitor", "--bus"])
+        .arg(format!("socketcand://{addr}/vcan0"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start the monitor");
+    std::thread::sleep(Duration::from_millis(1000));
+    // SAFETY: sending SIGINT to our own child process.
+    assert_eq!(
+        unsafe { libc::kill(monitor.id() as libc::pid_t, libc::SIGINT) },
+        0
+    );
+    let out = monitor.wait_with_output().unwrap();
+    let _ = bridge.kill();
+    let _ = bridge.wait();
+    let text = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "exit {:?}: {text}", out.status);
+    assert!(
+        !text.contains("decelerat"),
+        "the monitor moves nothing:\n{text}"
+    );
+    assert!(text.contains("only listens"), "{text}");
+}
+
+#[test]
+fn a_demo_whose_motors_do_not_respond_fails_with_a_following_error() {
+    let _serial = serial();
+    let dir = std::env::temp_dir().join(format!("rollbase-cli-follow-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let plant = dir.join("dead.toml");
+    std::fs::write(&plant, "drive_time_constant = 1e300\n").unwrap();
+    let text = String::from_utf8(
+        rollbase()
+            .args(["config", "default"])
+            .output()
+            .unwrap()
+            .stdout,
+    )
+    .unwrap();
+    let heavy = dir.join("heavy.toml");
+    assert!(text.contains("mass = 150.0"), "{text}");
+    std::fs::write(&heavy, text.replacen("mass = 150.0", "mass = 1e308", 1)).unwrap();
+    for (opt, file) in [("--plant", &plant), ("--config", &heavy)] {
+        for profile in ["native", "cia402"] {
+            let out = output_within(
+                {
+                    let mut c = rollbase();
+                    c.args(["demo", "--lockstep", "--profile", profile, opt])
+                        .arg(file);
+                    c
+                },
+                Duration::from_secs(60),
+            );
+            let stdout = String::from_utf8_lossy(&out.stdout);
+            assert_eq!(
+                out.status.code(),
+                Some(1),
+                "{opt} {profile}: a platform that does not move must fail the run\n{stdout}\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            assert!(
+                stdout.contains("fault: following error: wheel")
+                    && stdout.contains("supervisor_final_state")
+                    && stdout.contains("fault"),
+                "{opt} {profile}:\n{stdout}"
+            );
+        }
+    }
+    let _ = std::fs::remove_dir_all(dir);
+}

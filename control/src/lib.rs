@@ -16,6 +16,7 @@ pub mod kinematic;
 pub mod limits;
 pub mod link;
 pub mod model;
+pub mod num;
 pub mod odometry;
 pub mod platform;
 pub mod ports;

@@ -12,22 +12,41 @@
 //! Every field is validated on load and errors name the field (`wheels[2].alpha`,
 //! `limits.wheel_speed` …) and say what is wrong with its value.
 
+use crate::num::Num;
 use crate::types::MAX_WHEELS;
+use rollbase_driver::busload::DEFAULT_FEEDBACK_WINDOW_S;
 pub use rollbase_driver::canopen::config::Cia402Config;
+use rollbase_driver::protocol::SETPOINT_WATCHDOG_S;
+
+/// Cycles without feedback the controller tolerates before it declares stale feedback
+/// (`SupervisorConfig::stale_cycles`' default): the devices' own watchdogs must tolerate as
+/// many lost SETPOINTs/RPDOs plus one.
+pub const TOLERATED_LOST_CYCLES: u32 = 3;
+
+/// Lowest control rate (Hz): the wheel modules' setpoint watchdog (50 ms,
+/// [`SETPOINT_WATCHDOG_S`]) must span the [`TOLERATED_LOST_CYCLES`] (3) cycles the controller
+/// tolerates without feedback plus one, or a module trips on a lost SETPOINT before the
+/// controller has noticed anything: 4 / 50 ms = 80 Hz.
+pub const MIN_CYCLE_HZ: f64 = (TOLERATED_LOST_CYCLES + 1) as f64 / SETPOINT_WATCHDOG_S;
+
+/// Time a cycle needs after its feedback window for the control step, the SETPOINTs' send and
+/// the thread's wake-up latency (s): 1 ms, about 8 times the largest measured compute time
+/// (119 µs, docs/performance.md) plus the wake-up latency.
+pub const CYCLE_COMPUTE_BUDGET_S: f64 = 0.001;
+
+/// Highest control rate (Hz): a cycle waits [`DEFAULT_FEEDBACK_WINDOW_S`] (2 ms) for the
+/// devices' answers to its SYNC and needs [`CYCLE_COMPUTE_BUDGET_S`] (1 ms) more, so its
+/// period is at least 3 ms: 333 Hz.
+pub const MAX_CYCLE_HZ: f64 = 1.0 / (DEFAULT_FEEDBACK_WINDOW_S + CYCLE_COMPUTE_BUDGET_S);
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 /// Errors from loading or validating a platform description.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
-    /// The file could not be read.
-    #[error("cannot read platform file {path}: {source}")]
-    Io {
-        /// File path.
-        path: String,
-        /// Underlying IO error.
-        source: std::io::Error,
-    },
+    /// The file could not be read, is too large (`/dev/zero` …) or is not UTF-8 text.
+    #[error(transparent)]
+    Input(#[from] rollbase_driver::input::InputError),
     /// The TOML is malformed or has unknown/missing fields.
     #[error("platform file is not valid TOML for a platform description: {0}")]
     Parse(String),
@@ -309,10 +328,11 @@ impl Platform {
     /// Reads, parses and validates a platform file.
     pub fn load(path: impl AsRef<Path>) -> Result<Self, ConfigError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
-            path: path.display().to_string(),
-            source,
-        })?;
+        let text = rollbase_driver::input::read_text(
+            path,
+            rollbase_driver::input::MAX_CONFIG_BYTES,
+            "platform file",
+        )?;
         Self::from_toml_str(&text)
     }
 
@@ -325,10 +345,10 @@ impl Platform {
     pub fn validate(&self) -> Result<(), ConfigError> {
         fn pos(field: &str, v: f64) -> Result<(), ConfigError> {
             if !v.is_finite() {
-                return Err(invalid(field, v, "must be a finite number"));
+                return Err(invalid(field, Num(v), "must be a finite number"));
             }
             if v <= 0.0 {
-                return Err(invalid(field, v, "must be greater than zero"));
+                return Err(invalid(field, Num(v), "must be greater than zero"));
             }
             Ok(())
         }
@@ -340,11 +360,28 @@ impl Platform {
         pos("drive_torque", self.drive_torque)?;
         pos("steer_torque", self.steer_torque)?;
         pos("cycle_hz", self.cycle_hz)?;
-        if self.cycle_hz > 2000.0 {
+        if self.cycle_hz < MIN_CYCLE_HZ {
             return Err(invalid(
                 "cycle_hz",
-                self.cycle_hz,
-                "must be at most 2000 Hz",
+                Num(self.cycle_hz),
+                format!(
+                    "must be at least {MIN_CYCLE_HZ:.0} Hz: the wheel modules stop their motors when no valid SETPOINT arrived for {:.0} ms (setpoint watchdog), and the controller tolerates {TOLERATED_LOST_CYCLES} cycles without feedback before it stops the platform, so {} cycles must fit in {:.0} ms (250 Hz is the design rate)",
+                    SETPOINT_WATCHDOG_S * 1e3,
+                    TOLERATED_LOST_CYCLES + 1,
+                    SETPOINT_WATCHDOG_S * 1e3
+                ),
+            ));
+        }
+        if self.cycle_hz > MAX_CYCLE_HZ {
+            return Err(invalid(
+                "cycle_hz",
+                Num(self.cycle_hz),
+                format!(
+                    "must be at most {MAX_CYCLE_HZ:.0} Hz: each cycle waits {:.0} ms for the devices' feedback after its SYNC (the feedback window) and needs {:.0} ms more for the control step and the SETPOINTs, so the period must be at least {:.0} ms (250 Hz is the design rate)",
+                    DEFAULT_FEEDBACK_WINDOW_S * 1e3,
+                    CYCLE_COMPUTE_BUDGET_S * 1e3,
+                    (DEFAULT_FEEDBACK_WINDOW_S + CYCLE_COMPUTE_BUDGET_S) * 1e3
+                ),
             ));
         }
         let n = self.wheels.len();
@@ -372,14 +409,14 @@ impl Platform {
             if w.lambda_min >= w.lambda_max {
                 return Err(invalid(
                     f("lambda_min"),
-                    w.lambda_min,
+                    Num(w.lambda_min),
                     format!("must be less than lambda_max = {}", w.lambda_max),
                 ));
             }
             if w.lambda_max > 0.65 {
                 return Err(invalid(
                     f("lambda_max"),
-                    w.lambda_max,
+                    Num(w.lambda_max),
                     "exceeds the protocol's leg-extension range of 0.65 m",
                 ));
             }
@@ -389,7 +426,7 @@ impl Platform {
             {
                 return Err(invalid(
                     f("lambda_nominal"),
-                    w.lambda_nominal,
+                    Num(w.lambda_nominal),
                     format!(
                         "must lie in [lambda_min, lambda_max] = [{}, {}]",
                         w.lambda_min, w.lambda_max
@@ -423,14 +460,14 @@ impl Platform {
         if l.wheel_speed > 32.0 {
             return Err(invalid(
                 "limits.wheel_speed",
-                l.wheel_speed,
+                Num(l.wheel_speed),
                 "exceeds the protocol's wheel-speed range of ±32 rad/s",
             ));
         }
         if l.steer_rate > 32.0 {
             return Err(invalid(
                 "limits.steer_rate",
-                l.steer_rate,
+                Num(l.steer_rate),
                 "exceeds the protocol's steer-rate range of ±32 rad/s",
             ));
         }
@@ -490,6 +527,20 @@ impl Platform {
         let c = self.cia402();
         c.validate(self.n(), self.cycle_hz)
             .map_err(|e| invalid(e.field, e.value, e.reason))?;
+        // The drives' RPDO deadline is their setpoint watchdog: like the native modules' it
+        // must span the cycles the controller tolerates without feedback plus one.
+        let need_ms = f64::from(TOLERATED_LOST_CYCLES + 1) * 1000.0 / self.cycle_hz;
+        if c.rpdo_timeout_ms != 0 && f64::from(c.rpdo_timeout_ms) < need_ms {
+            return Err(invalid(
+                "cia402.rpdo_timeout_ms",
+                c.rpdo_timeout_ms,
+                format!(
+                    "must be 0 (off) or at least {} control cycles ({need_ms:.1} ms at cycle_hz = {}): the controller tolerates {TOLERATED_LOST_CYCLES} cycles without feedback, the drives must tolerate as many lost RPDOs plus one",
+                    TOLERATED_LOST_CYCLES + 1,
+                    Num(self.cycle_hz)
+                ),
+            ));
+        }
         let l = &self.limits;
         for (field, units, limit, name) in [
             ("cia402.drive", c.drive, l.wheel_speed, "limits.wheel_speed"),
@@ -615,6 +666,63 @@ mod tests {
         let mut p = Platform::justin();
         p.wheels[1].node = 1;
         assert_eq!(err_field(&p), "wheels[1].node");
+    }
+
+    #[test]
+    fn the_cycle_rate_is_bounded_by_the_timing_design() {
+        let msg = |hz: f64| {
+            let mut p = Platform::justin();
+            p.cycle_hz = hz;
+            match p.validate() {
+                Err(ConfigError::Invalid {
+                    field,
+                    value,
+                    reason,
+                }) => {
+                    format!("{field} = {value}: {reason}")
+                }
+                other => panic!("cycle_hz = {hz} accepted: {other:?}"),
+            }
+        };
+        // Far too slow: the controller would not run a cycle before the modules' watchdog.
+        let m = msg(0.001);
+        assert!(
+            m.starts_with("cycle_hz = 0.001: must be at least 80 Hz"),
+            "{m}"
+        );
+        assert!(m.contains("50 ms") && m.contains("watchdog"), "{m}");
+        // 10 Hz: one SETPOINT per 100 ms trips the 50 ms watchdog at once.
+        assert!(msg(10.0).contains("at least 80 Hz"));
+        assert!(msg(79.9).contains("at least 80 Hz"));
+        let m = msg(1000.0);
+        assert!(
+            m.contains("at most 333 Hz") && m.contains("feedback window"),
+            "{m}"
+        );
+        assert!(msg(1e300).starts_with("cycle_hz = 1e300"), "{}", msg(1e300));
+        for ok in [MIN_CYCLE_HZ, 100.0, 250.0, 333.0] {
+            let mut p = Platform::justin();
+            p.cycle_hz = ok;
+            p.validate().unwrap();
+        }
+        // The CiA 402 drives' RPDO deadline must span 4 cycles at the platform's rate.
+        let mut p = Platform::justin();
+        p.protocol = Protocol::Cia402;
+        p.cycle_hz = 80.0;
+        let mut c = Cia402Config::for_wheels(4);
+        c.rpdo_timeout_ms = 49;
+        p.cia402 = Some(c);
+        assert_eq!(err_field(&p), "cia402.rpdo_timeout_ms");
+        p.cia402.as_mut().unwrap().rpdo_timeout_ms = 50;
+        p.validate().unwrap();
+    }
+
+    #[test]
+    fn tiny_values_are_printed_readably() {
+        let mut p = Platform::justin();
+        p.limits.leg_speed = -1e-300;
+        let m = p.validate().unwrap_err().to_string();
+        assert!(m.contains("= -1e-300:"), "{m}");
     }
 
     #[test]

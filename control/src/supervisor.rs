@@ -11,7 +11,40 @@
 //! Faults: feedback from a module stale for more than [`SupervisorConfig::stale_cycles`]
 //! cycles, a module reporting a fault in STATUS, a limit breach (a measured wheel speed or
 //! steering rate beyond the configured limit by more than the margin, or a non-finite value),
-//! a bus error, a slip residual above threshold for several cycles, or an alignment timeout.
+//! a bus error, a slip residual above threshold for several cycles, a following error (a drive
+//! that does not do what it is told, below), an alignment timeout, or a trajectory run that
+//! ends away from its goal ([`FaultReason::NotArrived`]).
+//!
+//! # Following error
+//!
+//! Modelled on the CiA 402 following-error supervision (CiA 402 / IEC 61800-7-201 objects
+//! 0x6065 *following error window*: "the configured range of tolerated position values
+//! symmetrically to the position demand value … A following error may occur when a drive is
+//! blocked, unreachable profile velocity occurs, or at wrong closed-loop coefficients", and
+//! 0x6066 *following error time out*: "the configured time for a following error condition",
+//! in ms; e.g. <https://infosys.beckhoff.com/content/1033/ax8xxx_object/11604836363.html> and
+//! <https://infosys.beckhoff.com/content/1033/amp8000_object/18779988235.html>), applied to the
+//! quantities this controller commands: each wheel's spin rate and steering rate, for every
+//! wire profile (the check sees commands and measurements, not frames).
+//!
+//! A velocity-controlled drive does not reproduce its command at once: the command takes a
+//! cycle (two with CiA 402's synchronous RPDOs) to reach it, its velocity loop lags with a
+//! time constant T (20 ms drive, 15 ms steering in `rollbase-vcan-sim`'s plant) and its torque
+//! limits its acceleration (≈ 110 rad/s² rolling, 56 rad/s² steering). All three only delay
+//! the response, so the measured value of a healthy drive stays within the range of what was
+//! commanded over the last [`SupervisorConfig::follow_lag`] (0.1 s: the transport delay, 3 T
+//! for the lag to settle to 5 %, and the ramp of a command step at the torque limit). The
+//! "demand" of 0x6065 is therefore that range, widened by a window that scales with the
+//! command: `window = follow_*_window + follow_window_rel · |command|` (0.5 rad/s / 0.3 rad/s
+//! plus 25 %: noise, quantization and the lag's residue stay far inside, a drive realising
+//! half its command or nothing at all does not). A measurement outside the widened range for
+//! longer than [`SupervisorConfig::follow_timeout`] (0x6066; 0.2 s) is a
+//! [`FaultReason::FollowingError`] naming the wheel, the drive's node, the quantity, commanded
+//! and measured values and how long. It is checked only once the wheel has reported its drives
+//! enabled (STATUS Enabled, or both CiA 402 drives in Operation enabled) for longer than the
+//! lag (a drive just enabled is still on its way to its command); a cycle whose command
+//! disabled or braked the wheel enters the range as 0 (its drives are going to rest). An
+//! infinite timeout switches the check off (as 0xFFFFFFFF does for 0x6065).
 //!
 //! A controlled stop ([`stop_command`]) decelerates every wheel from its last commanded speed
 //! toward zero at the wheel acceleration limit, all wheels scaled together so the platform keeps
@@ -20,6 +53,7 @@
 //!
 //! The supervisor is pure: inputs in, decision out; time is the cycle index.
 
+use crate::num::{Fixed3, Num};
 use crate::platform::Platform;
 use crate::types::{Command, MAX_WHEELS};
 use rollbase_driver::canopen::config::Role;
@@ -124,6 +158,37 @@ pub enum FaultReason {
         /// Unexplained angle change (rad).
         jump: f64,
     },
+    /// A drive does not follow its command: the measured value stayed outside the window
+    /// around what was commanded for longer than the timeout (module docs).
+    FollowingError {
+        /// Wheel index.
+        wheel: usize,
+        /// CAN node of the drive (native: the wheel module; CiA 402: the rolling or steering
+        /// drive).
+        node: u8,
+        /// Which quantity.
+        quantity: FollowQuantity,
+        /// The latest command (rad/s).
+        commanded: f64,
+        /// The measured value (rad/s).
+        measured: f64,
+        /// The window around the recent commands it is outside of (rad/s).
+        window: f64,
+        /// How long it has been outside (s).
+        duration: f64,
+    },
+    /// A trajectory run ended (the trajectory done, the platform at rest) with the estimated
+    /// pose or a leg farther from the trajectory's goal than the arrival tolerances.
+    NotArrived {
+        /// Distance of the estimated position from the goal (m).
+        distance: f64,
+        /// Heading difference to the goal (rad).
+        heading: f64,
+        /// The wheel whose leg is farthest from its goal extension.
+        leg_wheel: usize,
+        /// That leg's difference (m).
+        leg_error: f64,
+    },
     /// The platform is not where the trajectory starts: a leg differs from the trajectory's
     /// initial extension by more than the tolerance, so tracking is refused.
     StartMismatch {
@@ -136,6 +201,24 @@ pub enum FaultReason {
         /// The trajectory's initial leg extension (m).
         expected: f64,
     },
+}
+
+/// Which commanded quantity a [`FaultReason::FollowingError`] is about.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum FollowQuantity {
+    /// The wheel's spin rate (the rolling drive).
+    WheelSpeed,
+    /// The steering rate (the steering drive).
+    SteerRate,
+}
+
+impl std::fmt::Display for FollowQuantity {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::WheelSpeed => "wheel speed",
+            Self::SteerRate => "steering rate",
+        })
+    }
 }
 
 /// Which limit a [`FaultReason::LimitBreach`] refers to.
@@ -204,6 +287,36 @@ impl std::fmt::Display for FaultReason {
                 wheel + 1,
                 jump.to_degrees()
             ),
+            Self::FollowingError {
+                wheel,
+                node,
+                quantity,
+                commanded,
+                measured,
+                window,
+                duration,
+            } => write!(
+                f,
+                "following error: wheel {} (node {node}) {quantity} measured {} rad/s while {} rad/s was commanded, outside the window (±{} rad/s around the last commands) for {:.3} s; the drive does not follow its command: check the motor, its power stage, brake and velocity scaling",
+                wheel + 1,
+                Fixed3(measured),
+                Fixed3(commanded),
+                Fixed3(window),
+                duration
+            ),
+            Self::NotArrived {
+                distance,
+                heading,
+                leg_wheel,
+                leg_error,
+            } => write!(
+                f,
+                "did not arrive: the trajectory ended with the estimated pose {} m and {:.2}° from its goal and the leg of wheel {} {} mm from its goal extension (arrival tolerances in SupervisorConfig: arrive_position, arrive_heading, arrive_leg); the run failed",
+                Fixed3(distance),
+                heading.to_degrees(),
+                leg_wheel + 1,
+                Fixed3(leg_error * 1e3)
+            ),
             Self::StartMismatch {
                 wheel,
                 node,
@@ -255,12 +368,42 @@ pub struct SupervisorConfig {
     /// ½·φ̈·dt² (0.45 mrad at the 56 rad/s² torque limit) plus quantization and noise (≈0.5
     /// mrad); 0.02 rad leaves a margin of 20 and catches any real encoder jump.
     pub steer_jump_threshold: f64,
+    /// Following error (module docs): the time a healthy drive may take to follow a command
+    /// change (s). The measured value is compared with the range of the commands of this
+    /// long. Default 0.1 s: one or two cycles of transport delay, 3 T = 60 ms for a 20 ms
+    /// velocity loop to settle to 5 %, and a command step ramped at the torque limit. At most
+    /// [`FOLLOW_HISTORY`] − 1 cycles.
+    pub follow_lag: f64,
+    /// Following-error window of the wheel spin rate, absolute part (rad/s). Default 0.5
+    /// rad/s (0.04 m/s at the ground; encoder noise is 0.002 rad/s).
+    pub follow_wheel_window: f64,
+    /// Following-error window of the steering rate, absolute part (rad/s). Default 0.3 rad/s.
+    pub follow_steer_window: f64,
+    /// Following-error window, part proportional to the largest recent command (0.25 =
+    /// 25 %): a drive realising half its command is outside it.
+    pub follow_window_rel: f64,
+    /// Following-error time out (s; the role of CiA 402's 0x6066): how long the measured
+    /// value may stay outside the window before it is a fault. Default 0.2 s; infinite
+    /// switches the check off.
+    pub follow_timeout: f64,
+    /// Arrival check at the end of a trajectory run: largest distance of the estimated
+    /// position from the goal (m). Default 0.05 m, 10 × the seed-000 acceptance bound (5 mm);
+    /// infinite switches the check off.
+    pub arrive_position: f64,
+    /// Arrival check: largest heading difference to the goal (rad). Default 5° (10 × 0.5°).
+    pub arrive_heading: f64,
+    /// Arrival check: largest difference of a leg from its goal extension (m). Default 0.02 m
+    /// (10 × the 2 mm leg bound).
+    pub arrive_leg: f64,
 }
+
+/// Commands remembered per wheel for the following-error check (cycles).
+pub const FOLLOW_HISTORY: usize = 64;
 
 impl Default for SupervisorConfig {
     fn default() -> Self {
         Self {
-            stale_cycles: 3,
+            stale_cycles: crate::platform::TOLERATED_LOST_CYCLES,
             stale_data_cycles: 8,
             align_tolerance: 0.5f64.to_radians(),
             align_timeout_cycles: 2500,
@@ -270,7 +413,151 @@ impl Default for SupervisorConfig {
             rest_speed: 0.02,
             start_leg_tolerance: 0.005,
             steer_jump_threshold: 0.02,
+            follow_lag: 0.1,
+            follow_wheel_window: 0.5,
+            follow_steer_window: 0.3,
+            follow_window_rel: 0.25,
+            follow_timeout: 0.2,
+            arrive_position: 0.05,
+            arrive_heading: 5f64.to_radians(),
+            arrive_leg: 0.02,
         }
+    }
+}
+
+impl SupervisorConfig {
+    /// Checks the thresholds that have a range, for a control period `dt` (s); the error
+    /// names the field (`supervisor.follow_lag` …), the value and the range.
+    pub fn validate(&self, dt: f64) -> Result<(), (&'static str, String, String)> {
+        let bad = |field, v: f64, why: String| Err((field, Num(v).to_string(), why));
+        let max_lag = (FOLLOW_HISTORY - 1) as f64 * dt;
+        if !(self.follow_lag.is_finite()
+            && self.follow_lag >= 2.0 * dt
+            && self.follow_lag <= max_lag)
+        {
+            return bad(
+                "supervisor.follow_lag",
+                self.follow_lag,
+                format!(
+                    "must be between 2 control cycles ({} s) and {} cycles ({} s)",
+                    Num(2.0 * dt),
+                    FOLLOW_HISTORY - 1,
+                    Num(max_lag)
+                ),
+            );
+        }
+        for (field, v) in [
+            ("supervisor.follow_wheel_window", self.follow_wheel_window),
+            ("supervisor.follow_steer_window", self.follow_steer_window),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(field, v, "must be a finite speed > 0 rad/s".into());
+            }
+        }
+        if !(self.follow_window_rel.is_finite() && (0.0..1.0).contains(&self.follow_window_rel)) {
+            return bad(
+                "supervisor.follow_window_rel",
+                self.follow_window_rel,
+                "must be in [0, 1): a drive realising nothing must be outside the window".into(),
+            );
+        }
+        if self.follow_timeout.is_nan() || self.follow_timeout < dt {
+            return bad(
+                "supervisor.follow_timeout",
+                self.follow_timeout,
+                format!(
+                    "must be at least one control cycle ({} s), or infinite to switch the check off",
+                    Num(dt)
+                ),
+            );
+        }
+        for (field, v) in [
+            ("supervisor.arrive_position", self.arrive_position),
+            ("supervisor.arrive_heading", self.arrive_heading),
+            ("supervisor.arrive_leg", self.arrive_leg),
+        ] {
+            if v.is_nan() || v <= 0.0 {
+                return bad(
+                    field,
+                    v,
+                    "must be > 0, or infinite to switch the arrival check off".into(),
+                );
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The commands of the last [`FOLLOW_HISTORY`] cycles per wheel and quantity, and how long
+/// each measurement has been outside its window (module docs, following error).
+#[derive(Clone, Debug)]
+struct FollowMonitor {
+    /// Ring of commands: `[cycle][wheel][quantity]`, 0 for a cycle whose command disabled or
+    /// braked the wheel's drives.
+    cmd: [[[f64; 2]; MAX_WHEELS]; FOLLOW_HISTORY],
+    /// Next slot to write.
+    head: usize,
+    /// Valid entries (up to FOLLOW_HISTORY).
+    len: usize,
+    /// Consecutive checked cycles outside the window, per wheel and quantity.
+    outside: [[u32; 2]; MAX_WHEELS],
+    /// Consecutive cycles each wheel has reported its drives enabled.
+    enabled_for: [u32; MAX_WHEELS],
+    /// Largest error / window and longest run outside seen since the arm (for reports).
+    peak: FollowPeak,
+}
+
+/// The closest a run came to a following error, since the last arm: for reports and for the
+/// margin of healthy runs.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FollowPeak {
+    /// Largest ratio of the following error to its window (a fault needs > 1 for longer
+    /// than the timeout).
+    pub ratio: f64,
+    /// Longest time outside the window (s).
+    pub outside_s: f64,
+}
+
+impl FollowMonitor {
+    fn new() -> Self {
+        Self {
+            cmd: [[[0.0; 2]; MAX_WHEELS]; FOLLOW_HISTORY],
+            head: 0,
+            len: 0,
+            outside: [[0; 2]; MAX_WHEELS],
+            enabled_for: [0; MAX_WHEELS],
+            peak: FollowPeak::default(),
+        }
+    }
+
+    fn push(&mut self, cmd: &Command, enabled: &[bool; MAX_WHEELS]) {
+        let slot = &mut self.cmd[self.head];
+        for i in 0..MAX_WHEELS {
+            let w = cmd.wheels[i];
+            let on = i < cmd.n && enabled[i];
+            let finite = |x: f64| if x.is_finite() { x } else { 0.0 };
+            slot[i] = if on {
+                [finite(w.wheel_speed), finite(w.steer_rate)]
+            } else {
+                [0.0; 2]
+            };
+        }
+        self.head = (self.head + 1) % FOLLOW_HISTORY;
+        self.len = (self.len + 1).min(FOLLOW_HISTORY);
+    }
+
+    /// Range (min, max) of the last `k` commands of wheel `i`, quantity `q`, and the newest.
+    fn range(&self, i: usize, q: usize, k: usize) -> (f64, f64, f64) {
+        let k = k.min(self.len).max(1);
+        let mut lo = f64::INFINITY;
+        let mut hi = f64::NEG_INFINITY;
+        for j in 1..=k {
+            let v = self.cmd[(self.head + FOLLOW_HISTORY - j) % FOLLOW_HISTORY][i][q];
+            lo = lo.min(v);
+            hi = hi.max(v);
+        }
+        let newest = self.cmd[(self.head + FOLLOW_HISTORY - 1) % FOLLOW_HISTORY][i][q];
+        (lo, hi, newest)
     }
 }
 
@@ -312,6 +599,13 @@ pub struct SupervisorInput {
     pub slip_residual: f64,
     /// An operator stop was requested (Ctrl-C): controlled stop, not a fault.
     pub stop_requested: bool,
+    /// Per wheel, whether its drives report enabled (native STATUS Enabled; CiA 402 both
+    /// drives in Operation enabled): the following error is checked only then.
+    pub enabled: [bool; MAX_WHEELS],
+    /// While stopping at the end of a trajectory: the estimated pose's distance (m) and
+    /// heading difference (rad) to the goal, and the leg farthest from its goal as (wheel,
+    /// difference in m). `None` when not known.
+    pub goal_error: Option<(f64, f64, usize, f64)>,
 }
 
 /// What the cycle should do this cycle.
@@ -342,6 +636,11 @@ pub struct Supervisor {
     cycles_in_state: u32,
     slip_count: u32,
     transitions: u32,
+    drive_nodes: [u8; MAX_WHEELS],
+    dt: f64,
+    follow: FollowMonitor,
+    /// The current stop was asked for by the end of the trajectory (arrival is checked).
+    stopping_at_goal: bool,
 }
 
 impl Supervisor {
@@ -362,6 +661,10 @@ impl Supervisor {
             cycles_in_state: 0,
             slip_count: 0,
             transitions: 0,
+            drive_nodes: nodes,
+            dt: p.dt(),
+            follow: FollowMonitor::new(),
+            stopping_at_goal: false,
         }
     }
 
@@ -371,6 +674,24 @@ impl Supervisor {
     pub fn set_stream_nodes(&mut self, steer: [u8; MAX_WHEELS], leg: [u8; MAX_WHEELS]) {
         self.steer_nodes = steer;
         self.leg_nodes = leg;
+    }
+
+    /// The nodes of each wheel's rolling drive, when it is not the wheel's module (CiA 402):
+    /// following errors of the wheel speed name them.
+    pub fn set_drive_nodes(&mut self, drive: [u8; MAX_WHEELS]) {
+        self.drive_nodes = drive;
+    }
+
+    /// The closest the run came to a following error since the last arm.
+    pub fn follow_peak(&self) -> FollowPeak {
+        self.follow.peak
+    }
+
+    /// The command sent this cycle and which wheels it told to follow it (enabled, not
+    /// braking; the others are going to rest): the history the following-error check compares
+    /// the next measurements with. Call once per cycle after [`Supervisor::step`].
+    pub fn note_command(&mut self, cmd: &Command, enabled: &[bool; MAX_WHEELS]) {
+        self.follow.push(cmd, enabled);
     }
 
     /// Enters Fault for a reason found outside the cycle's checks (a device that cannot be
@@ -406,6 +727,8 @@ impl Supervisor {
             SupervisorState::Idle | SupervisorState::Stopped | SupervisorState::Fault => {
                 self.reason = None;
                 self.slip_count = 0;
+                self.follow = FollowMonitor::new();
+                self.stopping_at_goal = false;
                 self.enter(SupervisorState::Aligning);
                 true
             }
@@ -519,7 +842,75 @@ impl Supervisor {
         } else {
             self.slip_count = 0;
         }
-        None
+        self.check_following(input)
+    }
+
+    /// The following-error check (module docs): updates every counter, returns the first
+    /// wheel and quantity outside its window for longer than the timeout.
+    fn check_following(&mut self, input: &SupervisorInput) -> Option<FaultReason> {
+        let c = &self.cfg;
+        if c.follow_timeout.is_infinite() {
+            return None;
+        }
+        let k = ((c.follow_lag / self.dt).ceil() as usize).clamp(1, FOLLOW_HISTORY);
+        // Cycles outside before the timeout has passed (strictly more than the timeout).
+        let limit = (c.follow_timeout / self.dt).round().max(1.0) as u32;
+        let mut found = None;
+        for i in 0..self.n {
+            let on = &mut self.follow.enabled_for[i];
+            *on = if input.enabled[i] {
+                on.saturating_add(1)
+            } else {
+                0
+            };
+            // A drive enabled less than the lag ago may still be on its way to the command.
+            let checked = *on as usize > k;
+            for (q, measured, abs, quantity, node) in [
+                (
+                    0,
+                    input.wheel_speed[i],
+                    c.follow_wheel_window,
+                    FollowQuantity::WheelSpeed,
+                    self.drive_nodes[i],
+                ),
+                (
+                    1,
+                    input.steer_rate[i],
+                    c.follow_steer_window,
+                    FollowQuantity::SteerRate,
+                    self.steer_nodes[i],
+                ),
+            ] {
+                if !checked {
+                    self.follow.outside[i][q] = 0;
+                    continue;
+                }
+                let (lo, hi, newest) = self.follow.range(i, q, k);
+                let window = abs + c.follow_window_rel * lo.abs().max(hi.abs());
+                let error = (lo - measured).max(measured - hi).max(0.0);
+                let n = &mut self.follow.outside[i][q];
+                if error > window || !measured.is_finite() {
+                    *n = n.saturating_add(1);
+                } else {
+                    *n = 0;
+                }
+                let peak = &mut self.follow.peak;
+                peak.ratio = peak.ratio.max(error / window);
+                peak.outside_s = peak.outside_s.max(f64::from(*n) * self.dt);
+                if *n > limit && found.is_none() {
+                    found = Some(FaultReason::FollowingError {
+                        wheel: i,
+                        node,
+                        quantity,
+                        commanded: newest,
+                        measured,
+                        window,
+                        duration: f64::from(*n) * self.dt,
+                    });
+                }
+            }
+        }
+        found
     }
 
     /// Advances one cycle. `at_rest` says whether the last command had every wheel stopped.
@@ -571,6 +962,7 @@ impl Supervisor {
                     return Mode::Decelerate;
                 }
                 if input.stop_requested || input.trajectory_done {
+                    self.stopping_at_goal = !input.stop_requested;
                     self.enter(SupervisorState::Stopping);
                     return if at_rest {
                         Mode::Hold
@@ -581,12 +973,29 @@ impl Supervisor {
                 Mode::Track
             }
             SupervisorState::Stopping => {
-                if at_rest {
-                    self.enter(SupervisorState::Stopped);
-                    Mode::Hold
-                } else {
-                    Mode::Decelerate
+                if !at_rest {
+                    return Mode::Decelerate;
                 }
+                if let (true, Some((distance, heading, leg_wheel, leg_error))) =
+                    (self.stopping_at_goal, input.goal_error)
+                {
+                    let c = &self.cfg;
+                    // NaN compares false: a non-finite estimate did not arrive either.
+                    let arrived = distance <= c.arrive_position
+                        && heading.abs() <= c.arrive_heading
+                        && leg_error.abs() <= c.arrive_leg;
+                    if !arrived {
+                        self.fault(FaultReason::NotArrived {
+                            distance,
+                            heading,
+                            leg_wheel,
+                            leg_error,
+                        });
+                        return Mode::Hold;
+                    }
+                }
+                self.enter(SupervisorState::Stopped);
+                Mode::Hold
             }
             SupervisorState::Stopped => Mode::Hold,
             SupervisorState::Fault => {
@@ -838,6 +1247,211 @@ mod tests {
         inp.stop_requested = true;
         assert_eq!(s.step(&p, &inp, false), Mode::Decelerate);
         assert_eq!(s.state(), SupervisorState::Stopping);
+        assert!(s.reason().is_none());
+    }
+
+    /// Runs the supervisor in Tracking for `cycles` cycles: every wheel is commanded
+    /// `cmd(k)` (wheel speed, steering rate) and measures `meas(k, &drive)` where `drive`
+    /// models a healthy velocity-controlled drive (one cycle of transport delay, first-order
+    /// lag T = 20 ms, acceleration limit 110 rad/s², as in the simulator's plant) of the
+    /// command. Returns the first fault and its cycle.
+    fn follow_run(
+        cycles: u32,
+        cmd: impl Fn(u32) -> f64,
+        meas: impl Fn(u32, f64) -> f64,
+    ) -> (Option<(u32, FaultReason)>, FollowPeak) {
+        let (p, mut s) = tracking();
+        let dt = p.dt();
+        let (mut x, mut prev) = (0.0f64, 0.0f64);
+        for k in 0..cycles {
+            // The drive: 4 sub-steps of 1 ms towards the command of the previous cycle.
+            for _ in 0..4 {
+                let dv = (prev - x) * (1.0 - (-0.001f64 / 0.020).exp());
+                x += dv.clamp(-110.0 * 0.001, 110.0 * 0.001);
+            }
+            let mut inp = healthy();
+            inp.enabled = [true; MAX_WHEELS];
+            for i in 0..4 {
+                inp.wheel_speed[i] = meas(k, x);
+                inp.steer_rate[i] = 0.0;
+            }
+            s.step(&p, &inp, false);
+            if let Some(r) = s.reason() {
+                return (Some((k, r)), s.follow_peak());
+            }
+            let mut c = Command::zero(4);
+            for w in c.wheels.iter_mut().take(4) {
+                w.wheel_speed = cmd(k);
+            }
+            s.note_command(&c, &[true; MAX_WHEELS]);
+            prev = cmd(k);
+        }
+        let _ = dt;
+        (None, s.follow_peak())
+    }
+
+    #[test]
+    fn a_healthy_lagging_drive_stays_inside_the_following_window() {
+        // A step to 10 rad/s (at the acceleration limit), held, then a controlled-stop ramp
+        // at 40 rad/s²: lag and acceleration limit only delay the response.
+        let cmd = |k: u32| match k {
+            0..=29 => 0.0,
+            30..=299 => 10.0,
+            _ => (10.0 - 40.0 * 0.004 * f64::from(k - 299)).max(0.0),
+        };
+        let (fault, peak) = follow_run(500, cmd, |_, x| x);
+        assert!(fault.is_none(), "{fault:?}");
+        assert!(peak.ratio < 1.0, "{peak:?}");
+        // The same drive realising half its command is a following error …
+        let (fault, _) = follow_run(500, cmd, |_, x| 0.5 * x);
+        let (k, r) = fault.expect("a drive at 50 % is a following error");
+        match r {
+            FaultReason::FollowingError {
+                wheel: 0,
+                node: 1,
+                quantity: FollowQuantity::WheelSpeed,
+                commanded,
+                measured,
+                window,
+                duration,
+            } => {
+                assert_eq!(commanded, 10.0);
+                assert!((measured - 5.0).abs() < 0.1, "{measured}");
+                assert!((window - 3.0).abs() < 1e-9, "0.5 + 25 % of 10: {window}");
+                assert!(duration > 0.2, "{duration}");
+            }
+            r => panic!("{r:?}"),
+        }
+        // … detected the time out (0.2 s = 50 cycles) after it left the window.
+        assert!((80..=110).contains(&k), "fault at cycle {k}");
+        let msg = r.to_string();
+        assert!(
+            msg.starts_with("following error: wheel 1 (node 1) wheel speed measured 5.")
+                && msg.contains("10.000 rad/s was commanded"),
+            "{msg}"
+        );
+        // A drive within 20 % of its command (inside the 25 % window) is not.
+        let (fault, _) = follow_run(500, cmd, |_, x| 0.8 * x);
+        assert!(fault.is_none(), "{fault:?}");
+    }
+
+    #[test]
+    fn a_motor_that_does_not_respond_faults_after_lag_and_timeout_and_only_when_enabled() {
+        let (fault, _) = follow_run(200, |_| 5.0, |_, _| 0.0);
+        let (k, r) = fault.expect("a dead motor is a following error");
+        assert!(matches!(r, FaultReason::FollowingError { measured, .. } if measured == 0.0));
+        // Checked once enabled longer than the lag (25 cycles: from index 25 on), then more
+        // than 0.2 s = 50 cycles outside: index 75, the 76th cycle.
+        assert_eq!(k, 75);
+        // Not enabled (or not known to be): never checked.
+        let (p, mut s) = tracking();
+        let mut c = Command::zero(4);
+        c.wheels[2].wheel_speed = 5.0;
+        for _ in 0..500 {
+            s.step(&p, &healthy(), false);
+            s.note_command(&c, &[true; MAX_WHEELS]);
+        }
+        assert_eq!(s.state(), SupervisorState::Tracking);
+        // Switched off with an infinite time out (like 0xFFFFFFFF in 0x6065).
+        let p = Platform::justin();
+        let cfg = SupervisorConfig {
+            follow_timeout: f64::INFINITY,
+            ..SupervisorConfig::default()
+        };
+        let mut s = Supervisor::new(&p, cfg);
+        s.arm();
+        s.step(&p, &healthy(), true);
+        let mut inp = healthy();
+        inp.enabled = [true; MAX_WHEELS];
+        for _ in 0..500 {
+            s.step(&p, &inp, false);
+            s.note_command(&c, &[true; MAX_WHEELS]);
+        }
+        assert_eq!(s.state(), SupervisorState::Tracking);
+    }
+
+    #[test]
+    fn following_thresholds_are_validated() {
+        let dt = 0.004;
+        SupervisorConfig::default().validate(dt).unwrap();
+        for (cfg, field) in [
+            (
+                SupervisorConfig {
+                    follow_lag: 0.3,
+                    ..Default::default()
+                },
+                "supervisor.follow_lag",
+            ),
+            (
+                SupervisorConfig {
+                    follow_window_rel: 1.0,
+                    ..Default::default()
+                },
+                "supervisor.follow_window_rel",
+            ),
+            (
+                SupervisorConfig {
+                    follow_timeout: 0.0,
+                    ..Default::default()
+                },
+                "supervisor.follow_timeout",
+            ),
+            (
+                SupervisorConfig {
+                    follow_wheel_window: f64::NAN,
+                    ..Default::default()
+                },
+                "supervisor.follow_wheel_window",
+            ),
+            (
+                SupervisorConfig {
+                    arrive_position: 0.0,
+                    ..Default::default()
+                },
+                "supervisor.arrive_position",
+            ),
+        ] {
+            assert_eq!(cfg.validate(dt).unwrap_err().0, field);
+        }
+    }
+
+    #[test]
+    fn a_trajectory_that_ends_away_from_its_goal_fails_but_an_operator_stop_does_not() {
+        let (p, mut s) = tracking();
+        let mut inp = healthy();
+        inp.trajectory_done = true;
+        assert_eq!(s.step(&p, &inp, false), Mode::Decelerate);
+        assert_eq!(s.state(), SupervisorState::Stopping);
+        inp.goal_error = Some((6.4, 3.1, 2, 0.0));
+        assert_eq!(s.step(&p, &inp, false), Mode::Decelerate, "still moving");
+        assert_eq!(s.step(&p, &inp, true), Mode::Hold);
+        assert_eq!(s.state(), SupervisorState::Fault);
+        let r = s.reason().expect("a reason");
+        assert!(matches!(r, FaultReason::NotArrived { leg_wheel: 2, .. }));
+        assert!(
+            r.to_string().starts_with("did not arrive: the trajectory ended with the estimated pose 6.400 m and 177.62° from its goal"),
+            "{r}"
+        );
+        // Within the tolerances (0.05 m, 5°, 20 mm): Stopped.
+        let (p, mut s) = tracking();
+        inp.goal_error = Some((0.01, 0.01, 0, 0.005));
+        s.step(&p, &inp, true);
+        s.step(&p, &inp, true);
+        assert_eq!(s.state(), SupervisorState::Stopped);
+        // A NaN estimate did not arrive either.
+        let (p, mut s) = tracking();
+        inp.goal_error = Some((f64::NAN, 0.0, 0, 0.0));
+        s.step(&p, &inp, true);
+        s.step(&p, &inp, true);
+        assert_eq!(s.state(), SupervisorState::Fault);
+        // An operator stop (Ctrl-C) ends where it ends: no arrival check.
+        let (p, mut s) = tracking();
+        let mut stop = healthy();
+        stop.stop_requested = true;
+        stop.goal_error = Some((6.4, 3.1, 2, 0.0));
+        s.step(&p, &stop, true);
+        s.step(&p, &stop, true);
+        assert_eq!(s.state(), SupervisorState::Stopped);
         assert!(s.reason().is_none());
     }
 

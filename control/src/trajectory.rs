@@ -57,14 +57,9 @@ pub trait Trajectory: Send + Sync {
 /// Errors from building or loading a trajectory.
 #[derive(Debug, thiserror::Error)]
 pub enum TrajectoryError {
-    /// The waypoint file could not be read.
-    #[error("cannot read waypoint file {path}: {source}")]
-    Io {
-        /// File path.
-        path: String,
-        /// Underlying IO error.
-        source: std::io::Error,
-    },
+    /// The waypoint file could not be read, is too large (`/dev/zero` …) or is not UTF-8.
+    #[error(transparent)]
+    Input(#[from] rollbase_driver::input::InputError),
     /// The waypoint TOML is malformed.
     #[error("waypoint file is not valid TOML for a waypoint list: {0}")]
     Parse(String),
@@ -76,8 +71,9 @@ pub enum TrajectoryError {
         /// The value.
         value: f64,
     },
-    /// A limit (velocity, acceleration) is not positive, or a start speed is out of range.
-    #[error("`{field}` = {value}: {reason}")]
+    /// A limit (velocity, acceleration) is not positive, a start speed is out of range, or a
+    /// waypoint time is absurd.
+    #[error("`{field}` = {}: {reason}", crate::num::Num(*value))]
     BadParameter {
         /// Parameter name.
         field: String,
@@ -454,6 +450,16 @@ fn eval_quintic(c: &[f64; 6], tau: f64) -> (f64, f64, f64, f64) {
     (p, v, a, j)
 }
 
+/// Latest waypoint time (s): 10 h. Longer runs are split into several trajectories; the
+/// runtime checks every control period of a trajectory against the limits before it starts
+/// (`runtime::check_feasible`), which stays within seconds up to this length.
+pub const MAX_WAYPOINT_TIME_S: f64 = 36_000.0;
+
+/// Shortest time between two waypoints (s): 10 ms, shorter than any segment the platform can
+/// follow (a control cycle is 3–12.5 ms), long enough that the spline's coefficients (which
+/// divide by up to the fifth power of the segment time) stay finite.
+pub const MIN_SEGMENT_S: f64 = 0.01;
+
 impl QuinticSpline {
     /// Builds the spline through `waypoints` (at least 2, strictly increasing times ≥ 0),
     /// checked against the platform: leg count, leg range at the waypoints and along the
@@ -483,11 +489,32 @@ impl QuinticSpline {
                     reason: "must be ≥ 0 (time from the trajectory start)".into(),
                 });
             }
+            if w.t > MAX_WAYPOINT_TIME_S {
+                return Err(TrajectoryError::BadParameter {
+                    field: format!("waypoints[{k}].t"),
+                    value: w.t,
+                    reason: format!(
+                        "must be at most {MAX_WAYPOINT_TIME_S} s (10 h) from the trajectory start: a longer run is split into several trajectories"
+                    ),
+                });
+            }
             if k > 0 && w.t <= waypoints[k - 1].t {
                 return Err(TrajectoryError::NonIncreasingTime {
                     waypoint: k,
                     t: w.t,
                     previous: waypoints[k - 1].t,
+                });
+            }
+            if k > 0 && w.t - waypoints[k - 1].t < MIN_SEGMENT_S {
+                return Err(TrajectoryError::BadParameter {
+                    field: format!("waypoints[{k}].t"),
+                    value: w.t,
+                    reason: format!(
+                        "is only {} s after waypoints[{}].t = {}: waypoints must be at least {MIN_SEGMENT_S} s apart (a segment shorter than a control cycle cannot be followed)",
+                        crate::num::Num(w.t - waypoints[k - 1].t),
+                        k - 1,
+                        crate::num::Num(waypoints[k - 1].t)
+                    ),
                 });
             }
             for (i, wc) in p.wheels.iter().enumerate().take(n) {
@@ -618,10 +645,11 @@ pub fn load_waypoints(
     path: impl AsRef<Path>,
 ) -> Result<QuinticSpline, TrajectoryError> {
     let path = path.as_ref();
-    let text = std::fs::read_to_string(path).map_err(|source| TrajectoryError::Io {
-        path: path.display().to_string(),
-        source,
-    })?;
+    let text = rollbase_driver::input::read_text(
+        path,
+        rollbase_driver::input::MAX_TRAJECTORY_BYTES,
+        "waypoint file",
+    )?;
     QuinticSpline::from_toml_str(p, &text)
 }
 
@@ -865,7 +893,30 @@ legs = [0.45, 0.45, 0.45, 0.50]
         ));
         assert!(matches!(
             load_waypoints(&p, "/nonexistent/rollbase.toml"),
-            Err(TrajectoryError::Io { .. })
+            Err(TrajectoryError::Input(_))
         ));
+    }
+
+    #[test]
+    fn absurd_waypoint_times_are_refused_naming_the_waypoint() {
+        let p = Platform::justin();
+        let file = |t1: &str| {
+            format!(
+                "[[waypoints]]\nt = 0.0\nx = 0.0\ny = 0.0\ntheta = 0.0\nlegs = [0.45, 0.45, 0.45, 0.45]\n\n[[waypoints]]\nt = {t1}\nx = 1.0\ny = 0.0\ntheta = 0.0\nlegs = [0.45, 0.45, 0.45, 0.45]\n"
+            )
+        };
+        let e = QuinticSpline::from_toml_str(&p, &file("1e300")).unwrap_err();
+        let m = e.to_string();
+        assert!(
+            m.starts_with("`waypoints[1].t` = 1e300: must be at most 36000 s"),
+            "{m}"
+        );
+        let e = QuinticSpline::from_toml_str(&p, &file("1e-300")).unwrap_err();
+        let m = e.to_string();
+        assert!(
+            m.contains("waypoints[1].t") && m.contains("1e-300 s after waypoints[0].t"),
+            "{m}"
+        );
+        assert!(QuinticSpline::from_toml_str(&p, &file("36000.0")).is_ok());
     }
 }

@@ -89,6 +89,24 @@ pub enum CandumpError {
         /// OS error text.
         message: String,
     },
+    /// The line is not UTF-8 text (the reader goes on with the next line).
+    #[error("candump log line {line}, column {column}: not UTF-8 text (a damaged or binary line)")]
+    NotUtf8 {
+        /// 1-based line number.
+        line: usize,
+        /// 1-based byte column of the first invalid byte.
+        column: usize,
+    },
+    /// The line is longer than [`crate::input::MAX_CANDUMP_LINE_BYTES`]: no `candump -L` line
+    /// is (the longest is about 180 bytes), so the input is not a candump log and the reader
+    /// stops there instead of reading an endless line into memory.
+    #[error("candump log line {line} is longer than {cap} bytes (a candump -L line is at most about 180): this is not a candump log; reading stopped")]
+    LineTooLong {
+        /// 1-based line number.
+        line: usize,
+        /// The cap (bytes).
+        cap: usize,
+    },
 }
 
 impl CandumpError {
@@ -96,9 +114,23 @@ impl CandumpError {
         match &mut self {
             CandumpError::Syntax { line, .. }
             | CandumpError::Unsupported { line, .. }
-            | CandumpError::Io { line, .. } => *line = n,
+            | CandumpError::Io { line, .. }
+            | CandumpError::NotUtf8 { line, .. }
+            | CandumpError::LineTooLong { line, .. } => *line = n,
         }
         self
+    }
+
+    /// The 1-based line number of the log the error is about ([`parse_line`] alone reports
+    /// line 1; [`CandumpReader`] the line of the file).
+    pub fn line(&self) -> usize {
+        match self {
+            CandumpError::Syntax { line, .. }
+            | CandumpError::Unsupported { line, .. }
+            | CandumpError::Io { line, .. }
+            | CandumpError::NotUtf8 { line, .. }
+            | CandumpError::LineTooLong { line, .. } => *line,
+        }
     }
 }
 
@@ -351,8 +383,11 @@ impl<W: Write> CandumpWriter<W> {
     }
 }
 
-/// Reads `candump -L` lines; an iterator of entries. Blank lines are skipped; a read error
-/// ends the iteration after being reported once.
+/// Reads `candump -L` lines; an iterator of entries. Blank lines are skipped; a line that
+/// cannot be parsed (bad syntax, not UTF-8) is reported with its line number and reading goes
+/// on with the next line; a read error or a line longer than
+/// [`crate::input::MAX_CANDUMP_LINE_BYTES`] (not a candump log: `/dev/zero`, a binary file)
+/// ends the iteration after being reported once. No more than the cap is ever held in memory.
 #[derive(Debug)]
 pub struct CandumpReader<R: BufRead> {
     input: R,
@@ -390,14 +425,21 @@ impl<R: BufRead> Iterator for CandumpReader<R> {
 
     fn next(&mut self) -> Option<Self::Item> {
         while !self.done {
-            self.buf.clear();
             self.line += 1;
-            match self.input.read_until(b'\n', &mut self.buf) {
-                Ok(0) => {
+            let cap = crate::input::MAX_CANDUMP_LINE_BYTES;
+            match crate::input::read_line(&mut self.input, &mut self.buf, cap) {
+                Ok(crate::input::Line::Eof) => {
                     self.done = true;
                     return None;
                 }
-                Ok(_) => {}
+                Ok(crate::input::Line::Complete) => {}
+                Ok(crate::input::Line::TooLong) => {
+                    self.done = true;
+                    return Some(Err(CandumpError::LineTooLong {
+                        line: self.line,
+                        cap,
+                    }));
+                }
                 Err(e) => {
                     self.done = true;
                     return Some(Err(CandumpError::Io {
@@ -409,11 +451,9 @@ impl<R: BufRead> Iterator for CandumpReader<R> {
             let text = match std::str::from_utf8(&self.buf) {
                 Ok(t) => t,
                 Err(e) => {
-                    return Some(Err(CandumpError::Syntax {
+                    return Some(Err(CandumpError::NotUtf8 {
                         line: self.line,
                         column: e.valid_up_to() + 1,
-                        token: String::new(),
-                        expected: "UTF-8 text",
                     }))
                 }
             };
@@ -621,6 +661,32 @@ mod tests {
             items[1]
         );
         assert_eq!(items[2].as_ref().map(|e| e.frame.id()), Ok(0x181));
+    }
+
+    #[test]
+    fn reader_goes_on_after_a_non_utf8_line_and_stops_at_an_endless_one() {
+        let mut log = b"(1.000000) vcan0 080#0102\n(1.5) vcan0 \xff\xfe#00\n".to_vec();
+        log.extend_from_slice(b"(2.000000) vcan0 181#\n");
+        let items: Vec<_> = CandumpReader::new(log.as_slice()).collect();
+        assert_eq!(items.len(), 3);
+        assert_eq!(
+            items[1],
+            Err(CandumpError::NotUtf8 {
+                line: 2,
+                column: 13
+            })
+        );
+        assert!(items[2].is_ok(), "{:?}", items[2]);
+        assert_eq!(items[1].as_ref().unwrap_err().line(), 2);
+        let mut log = b"(1.000000) vcan0 080#0102\n".to_vec();
+        log.extend(std::iter::repeat_n(b'0', 10_000));
+        log.extend_from_slice(b"\n(2.000000) vcan0 181#\n");
+        let items: Vec<_> = CandumpReader::new(log.as_slice()).collect();
+        assert_eq!(items.len(), 2, "reading stops at the endless line");
+        assert!(matches!(
+            items[1],
+            Err(CandumpError::LineTooLong { line: 2, cap: 4096 })
+        ));
     }
 
     #[test]

@@ -12,6 +12,7 @@
 //! - [`bus`]: the bus traits ([`bus::CanBus`], [`bus::AsyncCanBus`]) and backends
 //!   (SocketCAN, in-process virtual bus).
 //! - [`candump`]: `candump -L` log reader/writer.
+//! - [`input`]: bounded reading of input files (size and line-length caps), for every crate.
 //! - [`dbc`], [`busload`]: artefacts generated from the table.
 //! - [`canopen`]: the second protocol profile, CANopen (CiA 301) with the CiA 402 drive and
 //!   CiA 406 encoder profiles: frames, SDO, PDO mapping, the 402 state machine, units, the
@@ -27,6 +28,7 @@ pub mod crc;
 pub mod dbc;
 pub mod fault;
 pub mod frame;
+pub mod input;
 pub mod protocol;
 pub mod rng;
 pub mod rx;

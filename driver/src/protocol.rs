@@ -26,6 +26,12 @@ pub const MAX_NODE: u8 = 15;
 /// Default node numbers of a 4-wheel platform.
 pub const DEFAULT_NODES: [u8; 4] = [1, 2, 3, 4];
 
+/// The wheel modules' setpoint watchdog (s): a module that received no valid SETPOINT for
+/// this long stops its motors and latches `FAULT_WATCHDOG` (the protocol's safety rule; the
+/// simulated firmware's default). The control rate must leave room for lost SETPOINTs inside
+/// it (`rollbase_control::platform::MIN_CYCLE_HZ`).
+pub const SETPOINT_WATCHDOG_S: f64 = 0.050;
+
 /// Nominal bit rate of the bus, bit/s.
 pub const BITRATE: u32 = 1_000_000;
 

@@ -419,7 +419,9 @@ pub(crate) fn install_signals(stop: Arc<AtomicBool>, action: SignalAction) -> Ar
                         SignalAction::ControlledStop => tracing::warn!(
                             "{name}: controlled stop (the platform decelerates within its limits, steering held), then exit"
                         ),
-                        SignalAction::End => tracing::info!("{name}: ending"),
+                        SignalAction::End => tracing::info!(
+                            "{name}: ending (this command only listens: nothing on the bus is driven or stopped by it)"
+                        ),
                     }
                     came2.store(true, Ordering::SeqCst);
                     stop.store(true, Ordering::SeqCst);

@@ -5,7 +5,7 @@ use rollbase_control::Protocol;
 use rollbase_driver::bus::{self as bus, CanBus};
 use rollbase_driver::candump::{self};
 use rollbase_driver::frame::CanFrame;
-use std::io::{BufRead, Write};
+use std::io::Write;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -145,15 +145,12 @@ pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
                 path: path.display().to_string(),
                 message: format!("cannot open candump log: {e}"),
             })?;
-            for (lineno, line) in std::io::BufReader::new(f).lines().enumerate() {
-                let line = line.map_err(|e| CliError::File {
-                    path: path.display().to_string(),
-                    message: e.to_string(),
-                })?;
-                if line.trim().is_empty() {
-                    continue;
-                }
-                match candump::parse_line(&line) {
+            // Line numbers are the file's (blank lines count); a bad line is reported and
+            // counted and decoding goes on; a line longer than the cap (not a candump log:
+            // `/dev/zero`, a binary file) or a read error ends the decode with an error.
+            let mut reader = candump::CandumpReader::new(std::io::BufReader::new(f));
+            for item in reader.by_ref() {
+                match item {
                     Ok(e) if a.json => {
                         let v = dec.json(&mut stats, e.timestamp, &e.frame);
                         emit!("{v}");
@@ -162,14 +159,28 @@ pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
                         let line = dec.text(&mut stats, e.timestamp, &e.frame);
                         emit!("{line}");
                     }
+                    Err(
+                        e @ (candump::CandumpError::LineTooLong { .. }
+                        | candump::CandumpError::Io { .. }),
+                    ) => {
+                        if a.summary {
+                            stats.unparsable += 1;
+                            let line = dec.summary(&stats, a.json);
+                            emit!("{line}");
+                        }
+                        return Err(CliError::File {
+                            path: path.display().to_string(),
+                            message: e.to_string(),
+                        });
+                    }
                     Err(e) if a.json => {
                         stats.unparsable += 1;
-                        let v = serde_json::json!({"line": lineno + 1, "error": e.to_string()});
+                        let v = serde_json::json!({"line": e.line(), "error": e.to_string()});
                         emit!("{v}");
                     }
                     Err(e) => {
                         stats.unparsable += 1;
-                        emit!("line {}: {e}", lineno + 1);
+                        emit!("{}: {e}", path.display());
                     }
                 }
             }

@@ -375,18 +375,39 @@ pub(crate) mod exit {
     pub const RECORDING: i32 = 4;
 }
 
-pub(crate) fn exit_code(s: &RunSummary, ending: Ending, record_error: bool) -> i32 {
+/// The exit code of a run (README "Exit codes"). `arrive_position` (m): for a trajectory run
+/// whose errors were measured against the simulator's ground truth (the demo), the true final
+/// position must be within it of the goal too — the controller's own arrival check only sees
+/// its estimate, and an odometry that drifted would otherwise pass.
+pub(crate) fn exit_code(
+    s: &RunSummary,
+    ending: Ending,
+    record_error: bool,
+    arrive_position: Option<f64>,
+) -> i32 {
     if record_error {
-        exit::RECORDING
-    } else if s.final_state == "fault" {
-        exit::FAULT
-    } else if ending == Ending::Interrupted {
-        exit::INTERRUPTED
-    } else if s.final_state == "stopped" || s.final_state == "idle" {
-        exit::OK
-    } else {
-        exit::FAULT
+        return exit::RECORDING;
     }
+    if s.final_state == "fault" {
+        return exit::FAULT;
+    }
+    if ending == Ending::Interrupted {
+        return exit::INTERRUPTED;
+    }
+    if s.final_state != "stopped" && s.final_state != "idle" {
+        return exit::FAULT;
+    }
+    if let Some(tol) = arrive_position {
+        let arrived = s.final_position_error_m <= tol; // NaN: not arrived
+        if s.against_truth && !arrived {
+            errln!(
+                "did not arrive: the controller's estimate says the platform reached the goal, but the simulator's ground truth puts it {:.3} m away (more than arrive_position = {tol} m): the odometry drifted; the run failed",
+                s.final_position_error_m
+            );
+            return exit::FAULT;
+        }
+    }
+    exit::OK
 }
 
 pub(crate) fn print_summary(
@@ -438,5 +459,37 @@ pub(crate) fn print_summary(
     outln!("  {:<28} {:>12}", "supervisor_final_state", s.final_state);
     if let Some(r) = reason {
         outln!("  fault: {r}");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_run_fails_when_it_did_not_stop_or_the_truth_says_it_did_not_arrive() {
+        let mut s = RunSummary::new("seed000");
+        s.final_state = "fault".into();
+        assert_eq!(exit_code(&s, Ending::Completed, false, Some(0.05)), 1);
+        s.final_state = "stopped".into();
+        s.final_position_error_m = 0.2;
+        // On hardware (no truth) the controller's own arrival check decided: stopped is 0.
+        assert_eq!(exit_code(&s, Ending::Completed, false, Some(0.05)), 0);
+        // In simulation the truth must agree.
+        s.against_truth = true;
+        assert_eq!(exit_code(&s, Ending::Completed, false, Some(0.05)), 1);
+        s.final_position_error_m = 0.001;
+        assert_eq!(exit_code(&s, Ending::Completed, false, Some(0.05)), 0);
+        s.final_position_error_m = f64::NAN;
+        assert_eq!(exit_code(&s, Ending::Completed, false, Some(0.05)), 1);
+        // An interrupted run is 3, a failed recording 4 (it wins over everything), the
+        // service (no goal) 0 once stopped.
+        s.final_position_error_m = 0.001;
+        assert_eq!(exit_code(&s, Ending::Interrupted, false, Some(0.05)), 3);
+        assert_eq!(exit_code(&s, Ending::Completed, true, Some(0.05)), 4);
+        s.final_position_error_m = 3.0;
+        assert_eq!(exit_code(&s, Ending::Completed, false, None), 0);
+        s.final_state = "fault".into();
+        assert_eq!(exit_code(&s, Ending::Interrupted, false, None), 1);
     }
 }

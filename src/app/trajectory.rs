@@ -158,7 +158,8 @@ pub(crate) fn finish(
     } else {
         Ending::Completed
     };
-    Ok(exit_code(&summary, ending, err.is_some()))
+    let arrive = (!core.is_live()).then_some(core.config().supervisor.arrive_position);
+    Ok(exit_code(&summary, ending, err.is_some(), arrive))
 }
 
 /// The demo on virtual time: stops (in a controlled way) on a signal or a failed recording.

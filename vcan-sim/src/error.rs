@@ -27,14 +27,9 @@ pub enum SimError {
         /// The parser's message (names the unknown/bad key and its position).
         message: String,
     },
-    /// A file could not be read.
-    #[error("cannot read {path}: {source}")]
-    Io {
-        /// File path.
-        path: String,
-        /// Underlying IO error.
-        source: std::io::Error,
-    },
+    /// A file could not be read, is too large (`/dev/zero` …) or is not UTF-8 text.
+    #[error(transparent)]
+    Input(#[from] rollbase_driver::input::InputError),
     /// The platform description is invalid.
     #[error(transparent)]
     Platform(#[from] rollbase_control::ConfigError),
@@ -56,10 +51,12 @@ pub(crate) fn invalid(
     }
 }
 
-/// Reads a whole text file, mapping the error to [`SimError::Io`].
-pub(crate) fn read_file(path: &std::path::Path) -> Result<String, SimError> {
-    std::fs::read_to_string(path).map_err(|source| SimError::Io {
-        path: path.display().to_string(),
-        source,
-    })
+/// Reads a whole TOML configuration file (`what`: "plant file", "fault file"), at most
+/// [`rollbase_driver::input::MAX_CONFIG_BYTES`] long, mapping the error to [`SimError::Input`].
+pub(crate) fn read_file(path: &std::path::Path, what: &'static str) -> Result<String, SimError> {
+    Ok(rollbase_driver::input::read_text(
+        path,
+        rollbase_driver::input::MAX_CONFIG_BYTES,
+        what,
+    )?)
 }

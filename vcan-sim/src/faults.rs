@@ -33,6 +33,11 @@
 //! [[bus_off]]         # the simulator's bus connection is gone in [at, until)
 //! at = 5.0
 //! until = 5.2
+//!
+//! [[drive_gain]]      # the module's rolling drive realises `gain` × its setpoint from `at`
+//! node = 2            # (0.5: a motor that responds at 50 %, 0: one that does not respond)
+//! at = 6.0
+//! gain = 0.5
 //! ```
 //!
 //! The per-frame faults (loss, delay, jitter, duplicate, corrupt) act on every frame the
@@ -91,6 +96,20 @@ pub struct EncoderJump {
     pub amount: f64,
 }
 
+/// A module's rolling drive realises `gain` × its setpoint from `at` on (a weakened or dead
+/// motor; see `PlantConfig::drive_gain` for all drives from the start).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DriveGain {
+    /// CAN node of the module (native profile, 1..=15) or of the wheel's rolling drive (CiA
+    /// 402 profile, 1..=127).
+    pub node: u8,
+    /// Time (s).
+    pub at: f64,
+    /// Fraction of the setpoint realised, in [0, 2].
+    pub gain: f64,
+}
+
 /// The simulator's bus connection is gone in `[at, until)`: nothing is sent or received.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -127,6 +146,8 @@ pub struct FaultSchedule {
     pub encoder_jump: Vec<EncoderJump>,
     /// Bus-off intervals.
     pub bus_off: Vec<BusOff>,
+    /// Rolling drives that weaken or die.
+    pub drive_gain: Vec<DriveGain>,
 }
 
 fn check_prob(field: &str, p: f64) -> Result<(), SimError> {
@@ -168,7 +189,7 @@ impl FaultSchedule {
     /// Reads, parses and validates a schedule file.
     pub fn load(path: impl AsRef<Path>) -> Result<Self, SimError> {
         let path = path.as_ref();
-        let text = read_file(path)?;
+        let text = read_file(path, "fault file")?;
         Self::from_toml_str(&text).map_err(|e| match e {
             SimError::Parse { message, .. } => SimError::Parse {
                 what: format!("fault file {}", path.display()),
@@ -195,6 +216,7 @@ impl FaultSchedule {
             && self.encoder_stuck.is_empty()
             && self.encoder_jump.is_empty()
             && self.bus_off.is_empty()
+            && self.drive_gain.is_empty()
     }
 
     /// Checks every field; the error names the first bad one (e.g. `silent[1].to`).
@@ -239,6 +261,18 @@ impl FaultSchedule {
                 ));
             }
         }
+        for (i, g) in self.drive_gain.iter().enumerate() {
+            check_node(&format!("drive_gain[{i}].node"), g.node)?;
+            check_time(&format!("drive_gain[{i}].at"), g.at)?;
+            let max = crate::plant::MAX_DRIVE_GAIN;
+            if !(g.gain.is_finite() && (0.0..=max).contains(&g.gain)) {
+                return Err(invalid(
+                    format!("drive_gain[{i}].gain"),
+                    g.gain,
+                    format!("must be in [0, {max}] (1 = healthy, 0.5 = responds at 50 %, 0 = does not respond)"),
+                ));
+            }
+        }
         for (i, b) in self.bus_off.iter().enumerate() {
             check_time(&format!("bus_off[{i}].at"), b.at)?;
             check_time(&format!("bus_off[{i}].until"), b.until)?;
@@ -277,6 +311,9 @@ impl FaultSchedule {
         }
         for (i, m) in self.encoder_jump.iter().enumerate() {
             check(format!("encoder_jump[{i}].node"), m.node)?;
+        }
+        for (i, g) in self.drive_gain.iter().enumerate() {
+            check(format!("drive_gain[{i}].node"), g.node)?;
         }
         Ok(())
     }
@@ -369,6 +406,16 @@ pub fn parse_encoder_jump(text: &str) -> Result<EncoderJump, SimError> {
     })
 }
 
+/// Parses `NODE:AT:GAIN` (s, fraction) for `--drive-gain`.
+pub fn parse_drive_gain(text: &str) -> Result<DriveGain, SimError> {
+    let [n, at, gain] = parse_fields::<3>("--drive-gain", text, "NODE:AT:GAIN")?;
+    Ok(DriveGain {
+        node: node_of("--drive-gain", text, n)?,
+        at,
+        gain,
+    })
+}
+
 /// Parses `AT:UNTIL` (s) for `--bus-off`.
 pub fn parse_bus_off(text: &str) -> Result<BusOff, SimError> {
     let [at, until] = parse_fields::<2>("--bus-off", text, "AT:UNTIL")?;
@@ -412,6 +459,10 @@ pub struct FaultArgs {
     /// The bus goes away: AT:UNTIL (seconds). Repeatable.
     #[arg(long, value_name = "AT:UNTIL", value_parser = parse_bus_off)]
     pub bus_off: Vec<BusOff>,
+    /// A module's rolling drive realises GAIN × its setpoint from AT: NODE:AT:GAIN (seconds,
+    /// fraction; 0.5 = responds at 50 %, 0 = does not respond). Repeatable.
+    #[arg(long, value_name = "NODE:AT:GAIN", value_parser = parse_drive_gain)]
+    pub drive_gain: Vec<DriveGain>,
 }
 
 impl FaultArgs {
@@ -441,6 +492,7 @@ impl FaultArgs {
         s.encoder_stuck.extend_from_slice(&self.encoder_stuck);
         s.encoder_jump.extend_from_slice(&self.encoder_jump);
         s.bus_off.extend_from_slice(&self.bus_off);
+        s.drive_gain.extend_from_slice(&self.drive_gain);
         s.validate()?;
         Ok(s)
     }
@@ -479,6 +531,11 @@ amount = 0.3
 [[bus_off]]
 at = 5.0
 until = 5.2
+
+[[drive_gain]]
+node = 2
+at = 6.0
+gain = 0.5
 "#;
 
     #[test]
@@ -496,6 +553,14 @@ until = 5.2
         );
         assert_eq!(s.encoder_jump[0].amount, 0.3);
         assert_eq!(s.bus_off[0].until, 5.2);
+        assert_eq!(
+            s.drive_gain,
+            vec![DriveGain {
+                node: 2,
+                at: 6.0,
+                gain: 0.5
+            }]
+        );
         assert!(s.is_silent(2, 1.2) && !s.is_silent(2, 1.5) && !s.is_silent(1, 1.2));
         assert!(s.is_bus_off(5.0) && !s.is_bus_off(5.2));
         let back = FaultSchedule::from_toml_str(&s.to_toml_string()).unwrap();
@@ -541,6 +606,10 @@ until = 5.2
         assert_eq!(
             field_of("[[encoder_stuck]]\nnode = 2\nat = -1.0"),
             "encoder_stuck[0].at"
+        );
+        assert_eq!(
+            field_of("[[drive_gain]]\nnode = 2\nat = 1.0\ngain = -0.5"),
+            "drive_gain[0].gain"
         );
         let s = FaultSchedule::from_toml_str("[[encoder_jump]]\nnode = 9\nat = 1.0\namount = 0.1")
             .unwrap();

@@ -19,4 +19,6 @@ pub use error::SimError;
 pub use faults::{FaultArgs, FaultSchedule};
 pub use firmware::{FirmwareConfig, FirmwareStats, ModuleFirmware};
 pub use plant::{InitialState, MotorSetpoint, Plant, PlantConfig, PlantTruth, SensorReading};
-pub use sim::{run_realtime, spawn_realtime, RealtimeSummary, SimConfig, SimStats, Simulator};
+pub use sim::{
+    run_realtime, spawn_realtime, ClockMap, RealtimeSummary, SimConfig, SimStats, Simulator,
+};

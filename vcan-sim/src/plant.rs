@@ -107,6 +107,9 @@ use std::path::Path;
 /// Largest encoder latency (in plant steps) a [`PlantConfig`] may ask for.
 pub const MAX_LATENCY_SAMPLES: usize = 8;
 
+/// Largest drive gain a [`PlantConfig`] or a fault may ask for.
+pub const MAX_DRIVE_GAIN: f64 = 2.0;
+
 /// Standard gravity (m/s²), for the rolling resistance.
 const GRAVITY: f64 = 9.81;
 
@@ -164,6 +167,11 @@ pub struct PlantConfig {
     pub leg_rate_noise: f64,
     /// Encoder latency in plant steps (0 = the reading after the latest step). Default 1.
     pub latency_samples: usize,
+    /// Fraction of its speed setpoint every rolling drive realises (default 1): 0.5 models a
+    /// motor that responds at 50 % (a weak power stage, a wrong velocity scaling or gear
+    /// ratio), 0 one that does not respond at all. Per module and from a given time:
+    /// the fault schedule's `drive_gain` events.
+    pub drive_gain: f64,
 }
 
 impl Default for PlantConfig {
@@ -190,6 +198,7 @@ impl Default for PlantConfig {
             leg_noise: 1e-5,
             leg_rate_noise: 1e-4,
             latency_samples: 1,
+            drive_gain: 1.0,
         }
     }
 }
@@ -226,7 +235,7 @@ impl PlantConfig {
     /// Reads, parses and validates a plant configuration file.
     pub fn load(path: impl AsRef<Path>) -> Result<Self, SimError> {
         let path = path.as_ref();
-        let text = read_file(path)?;
+        let text = read_file(path, "plant file")?;
         Self::from_toml_str(&text).map_err(|e| match e {
             SimError::Parse { message, .. } => SimError::Parse {
                 what: format!("plant file {}", path.display()),
@@ -289,6 +298,13 @@ impl PlantConfig {
         non_neg("wheel_noise", self.wheel_noise)?;
         non_neg("leg_noise", self.leg_noise)?;
         non_neg("leg_rate_noise", self.leg_rate_noise)?;
+        if !(self.drive_gain.is_finite() && (0.0..=MAX_DRIVE_GAIN).contains(&self.drive_gain)) {
+            return Err(invalid(
+                "plant.drive_gain",
+                self.drive_gain,
+                format!("must be in [0, {MAX_DRIVE_GAIN}] (1 = a healthy drive, 0.5 = one that realises half its setpoint, 0 = none)"),
+            ));
+        }
         if self.latency_samples >= MAX_LATENCY_SAMPLES {
             return Err(invalid(
                 "plant.latency_samples",
@@ -483,6 +499,7 @@ pub struct Plant {
     head: usize,
     encoder_stuck: [bool; MAX_WHEELS],
     steer_offset: [f64; MAX_WHEELS],
+    drive_gain: [f64; MAX_WHEELS],
 }
 
 fn quantize(x: f64, q: f64) -> f64 {
@@ -625,7 +642,6 @@ impl Plant {
             sin_a,
             lmin,
             lmax,
-            cfg,
             limits,
             rng: Rng::new(seed),
             time: 0.0,
@@ -645,6 +661,8 @@ impl Plant {
             head: 0,
             encoder_stuck: [false; MAX_WHEELS],
             steer_offset: [0.0; MAX_WHEELS],
+            drive_gain: [cfg.drive_gain; MAX_WHEELS],
+            cfg,
         };
         // Fill the whole latency buffer with the initial reading so that early reads are sane.
         let first = plant.sample();
@@ -675,6 +693,14 @@ impl Plant {
         }
     }
 
+    /// Wheel `i`'s rolling drive realises `gain` × its setpoint from now on (a weakened or dead
+    /// motor). Out-of-range `i` and gains outside [0, [`MAX_DRIVE_GAIN`]] are ignored.
+    pub fn set_drive_gain(&mut self, i: usize, gain: f64) {
+        if i < self.n && gain.is_finite() && (0.0..=MAX_DRIVE_GAIN).contains(&gain) {
+            self.drive_gain[i] = gain;
+        }
+    }
+
     /// Adds `amount` (rad) to wheel `i`'s steering-encoder reading from now on (an encoder
     /// jump, e.g. a lost absolute-track bit). Out-of-range `i` or non-finite amounts are ignored.
     pub fn add_steer_encoder_offset(&mut self, i: usize, amount: f64) {
@@ -696,7 +722,7 @@ impl Plant {
             let w0 = self.wheel_speed[i];
             let w1 = motor_step(
                 w0,
-                sp.wheel_speed,
+                finite_or_zero(sp.wheel_speed) * self.drive_gain[i],
                 self.cfg.drive_time_constant,
                 lim.drive_accel,
                 lim.drive_speed,

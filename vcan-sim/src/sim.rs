@@ -129,6 +129,7 @@ enum EventKind {
     MotorFault,
     EncoderStuck,
     EncoderJump(f64),
+    DriveGain(f64),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -274,6 +275,12 @@ impl Simulator {
             wheel: wheel_of(m.node),
             node: m.node,
             kind: EventKind::EncoderJump(m.amount),
+        }));
+        events.extend(f.drive_gain.iter().map(|g| Event {
+            at: g.at,
+            wheel: wheel_of(g.node),
+            node: g.node,
+            kind: EventKind::DriveGain(g.gain),
         }));
         events.sort_by(|a, b| a.at.total_cmp(&b.at));
         let model = FaultModel {
@@ -526,6 +533,7 @@ impl Simulator {
                 },
                 EventKind::EncoderStuck => self.plant.set_encoder_stuck(ev.wheel, true),
                 EventKind::EncoderJump(a) => self.plant.add_steer_encoder_offset(ev.wheel, a),
+                EventKind::DriveGain(g) => self.plant.set_drive_gain(ev.wheel, g),
             }
         }
     }
@@ -705,12 +713,94 @@ pub struct RealtimeSummary {
     pub recv_errors: u64,
     /// Largest delay between a frame's due time and its actual send.
     pub max_send_lateness: Duration,
+    /// Largest delay between a received frame's arrival (its bus timestamp on the
+    /// simulator's time base) and the moment the simulator read it: how far the simulator
+    /// thread fell behind (a stall shows here). The frame itself was applied at its arrival.
+    pub max_receive_lag: Duration,
 }
 
+/// Maps the bus's receive timestamps onto the simulator's time base (module docs of
+/// [`run_realtime`]).
+///
+/// Each backend stamps a frame when it arrives, on its own clock: the wall-clock
+/// `VirtualBus` with the time since the bus was created, SocketCAN with the kernel's receive
+/// time (`SO_TIMESTAMP`, `CLOCK_REALTIME` since the Unix epoch), the socketcand client with
+/// the time the server (the bridge, or a socketcand daemon, possibly on another machine)
+/// stamped it. Whatever the clock, `arrival (simulator time) = timestamp + offset`, with an
+/// offset that is constant up to the clock's drift. A frame read at simulator time `r` arrived
+/// no later than `r`, so `r − timestamp` bounds the offset from above; the estimate is the
+/// smallest bound seen, allowed to grow by [`ClockMap::DRIFT`] (1000 ppm, twice the largest slew
+/// NTP applies) so a slowly drifting clock is followed. Two more facts bound each arrival
+/// from below: a frame the previous empty poll did not return arrived after that poll, and a
+/// frame arrived no earlier than the one read before it (one queue, in order). The mapped time
+/// is the estimate clamped into these bounds, so a frame is never applied before it can have
+/// arrived nor after it was read, whatever the backend's clock does (a stepped clock moves the
+/// estimate to the bound).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ClockMap {
+    /// Offset estimate (ns): simulator time − bus timestamp.
+    offset: Option<i128>,
+    /// Simulator time of the last offset update (ns).
+    updated: i128,
+    /// Lower bound of the next arrival (ns, simulator time).
+    floor: i128,
+}
+
+impl ClockMap {
+    /// Largest drift rate of a bus clock against the simulator's the estimate follows
+    /// (s per s).
+    pub const DRIFT: f64 = 1e-3;
+
+    /// A map with no frame seen yet.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The queue was found empty at simulator time `at`: later frames arrived after it.
+    pub fn empty_at(&mut self, at: Duration) {
+        self.floor = self.floor.max(at.as_nanos() as i128);
+    }
+
+    /// The simulator time at which a frame with bus timestamp `stamp`, read at simulator time
+    /// `read`, arrived.
+    pub fn arrival(&mut self, stamp: Duration, read: Duration) -> Duration {
+        let ts = stamp.as_nanos() as i128;
+        let r = read.as_nanos() as i128;
+        let bound = r - ts;
+        let est = match self.offset {
+            None => bound,
+            Some(o) => {
+                let grown = o + ((r - self.updated).max(0) as f64 * Self::DRIFT) as i128;
+                grown.min(bound)
+            }
+        };
+        let floor = self.floor.min(r);
+        let est = est.max(floor - ts);
+        self.offset = Some(est);
+        self.updated = r;
+        let t = (ts + est).clamp(floor, r);
+        self.floor = t;
+        Duration::from_nanos(t.max(0) as u64)
+    }
+}
+
+/// Most frames handled per wake-up before the loop sends what is due (the rest stay queued and
+/// the simulator does not advance past them).
+const MAX_FRAMES_PER_WAKEUP: usize = 256;
+
 /// Runs `sim` against a real (or wall-clock virtual) bus in real time until `stop` is set or
-/// `duration` has elapsed: receive until the next deadline (next sub-step or next due frame),
-/// hand frames to the simulator stamped with the elapsed wall time, advance, send what is due.
-/// Non-retryable bus errors end the run with [`SimError::Bus`].
+/// `duration` has elapsed.
+///
+/// Each wake-up (the next sub-step, the next due frame, or a frame's arrival) reads every
+/// frame waiting on the bus, and applies each at its own arrival time — its bus timestamp on
+/// the simulator's time base ([`ClockMap`]) — advancing the plant and the modules' timers
+/// (setpoint watchdog, STATUS) to that time first: frames and plant steps interleave in time
+/// order. Only when the queue is empty does the simulator advance to the present and send
+/// what is due. So when the simulator thread is held up (a page fault, a busy machine, a
+/// debugger), the SETPOINTs that arrived meanwhile are applied when they arrived, before the
+/// watchdog is evaluated at any later time: the simulated modules, like real ones, do not
+/// pause when the host does, and the simulator never trips a watchdog the controller did not
+/// cause. Non-retryable bus errors end the run with [`SimError::Bus`].
 pub fn run_realtime(
     sim: &mut Simulator,
     bus: &mut dyn CanBus,
@@ -720,6 +810,8 @@ pub fn run_realtime(
     let epoch = Instant::now() - sim.now();
     let start = sim.now();
     let mut summary = RealtimeSummary::default();
+    let mut clock = ClockMap::new();
+    clock.empty_at(start);
     loop {
         let now = epoch.elapsed();
         summary.elapsed = now - start;
@@ -733,16 +825,40 @@ pub fn run_realtime(
         if let Some(d) = duration {
             next = next.min(start + d);
         }
-        match bus.recv_until(epoch + next) {
-            Ok(Some(tf)) => {
-                summary.frames_in += 1;
-                sim.on_frame(epoch.elapsed(), &tf.frame);
+        // The first frame may be waited for; then everything already queued.
+        let mut got = bus.recv_until(epoch + next);
+        let mut applied = 0usize;
+        let mut last = sim.now();
+        let polled = loop {
+            match got {
+                Ok(Some(tf)) => {
+                    let read = epoch.elapsed();
+                    let at = clock.arrival(tf.timestamp, read).max(sim.now());
+                    summary.frames_in += 1;
+                    summary.max_receive_lag = summary.max_receive_lag.max(read.saturating_sub(at));
+                    sim.on_frame(at, &tf.frame);
+                    last = at;
+                    applied += 1;
+                    if applied >= MAX_FRAMES_PER_WAKEUP {
+                        break None;
+                    }
+                }
+                Ok(None) => {
+                    let empty = epoch.elapsed();
+                    clock.empty_at(empty);
+                    break Some(empty);
+                }
+                Err(e) if e.is_retryable() => {
+                    summary.recv_errors += 1;
+                    break Some(epoch.elapsed());
+                }
+                Err(e) => return Err(e.into()),
             }
-            Ok(None) => {}
-            Err(e) if e.is_retryable() => summary.recv_errors += 1,
-            Err(e) => return Err(e.into()),
-        }
-        let now = epoch.elapsed();
+            got = bus.try_recv();
+        };
+        // Advance to the moment the queue was seen empty (nothing can have arrived unseen
+        // before it), or, with frames still queued, only to the last frame applied.
+        let now = polled.unwrap_or(last).max(sim.now());
         sim.advance_to(now);
         let mut err = None;
         sim.drain_due(now, &mut |at, f| {

@@ -28,7 +28,7 @@ use crate::types::{Command, Measurement, ReferenceSample, Twist, MAX_WHEELS};
 use rollbase_driver::busload::frame_bits;
 use rollbase_driver::canopen::config::Role;
 use rollbase_driver::canopen::master::DeviceFault;
-use rollbase_driver::codec::{Setpoint, SetpointFlags, FAULT_WATCHDOG};
+use rollbase_driver::codec::{ModuleState, Setpoint, SetpointFlags, FAULT_WATCHDOG};
 use rollbase_driver::frame::{CanFrame, FrameBuf};
 
 /// Checks, before anything starts, that the reference stays inside the platform's wheel
@@ -41,11 +41,11 @@ pub fn check_feasible(p: &Platform, traj: &dyn Trajectory) -> Result<(), Runtime
     let n = p.n().min(MAX_WHEELS).min(traj.n_legs());
     let dt = p.dt();
     let d = traj.duration();
-    let steps = if d.is_finite() && d > 0.0 {
-        (d / dt).ceil().min(1e7) as u64
-    } else {
-        0
-    };
+    if !(d.is_finite() && (0.0..=crate::trajectory::MAX_WAYPOINT_TIME_S).contains(&d)) {
+        return Err(RuntimeError::Duration { duration: d });
+    }
+    // At most 10 h × 333 Hz = 12 million samples: every sample of every valid trajectory.
+    let steps = (d / dt).ceil() as u64;
     for k in 0..=steps {
         let t = (k as f64 * dt).min(d.max(0.0));
         let r = traj.sample(t);
@@ -229,6 +229,7 @@ impl CycleCore {
         cfg: RuntimeConfig,
     ) -> Result<Self, RuntimeError> {
         platform.validate()?;
+        cfg.validate(&platform)?;
         let n = platform.n();
         if trajectory.n_legs() != n {
             return Err(RuntimeError::LegCount {
@@ -253,6 +254,7 @@ impl CycleCore {
     /// platform is when it is armed. Odometry starts at the origin of the odometry frame.
     pub fn new_live(platform: Platform, cfg: RuntimeConfig) -> Result<Self, RuntimeError> {
         platform.validate()?;
+        cfg.validate(&platform)?;
         let n = platform.n();
         let mut legs = [0.0; MAX_WHEELS];
         for (l, w) in legs.iter_mut().zip(&platform.wheels) {
@@ -292,10 +294,12 @@ impl CycleCore {
         let mut nodes = [0u8; MAX_WHEELS];
         let mut steer_nodes = [0u8; MAX_WHEELS];
         let mut leg_nodes = [0u8; MAX_WHEELS];
+        let mut drive_nodes = [0u8; MAX_WHEELS];
         for i in 0..n.min(MAX_WHEELS) {
             nodes[i] = link.wheel_node(i);
             steer_nodes[i] = link.stream_node(i, Role::Steer);
             leg_nodes[i] = link.stream_node(i, Role::Leg);
+            drive_nodes[i] = link.stream_node(i, Role::Drive);
         }
         let controller: Box<dyn TrackingController + Send> = match cfg.controller {
             ControllerKind::Dfl => Box::new(DflController::new(&platform)),
@@ -304,6 +308,7 @@ impl CycleCore {
         let avoidance = cfg.avoidance.map(|a| Avoidance::new(&platform, a));
         let mut sup = Supervisor::new(&platform, cfg.supervisor);
         sup.set_stream_nodes(steer_nodes, leg_nodes);
+        sup.set_drive_nodes(drive_nodes);
         let mut record = CycleRecord::new(0, 0.0, n);
         record.nodes = nodes;
         let wheel_xy = wheel_positions(&platform, legs);
@@ -1046,7 +1051,25 @@ impl CycleCore {
             stop_requested,
             ..Default::default()
         };
+        if let (SupervisorState::Stopping, Source::Trajectory(src)) =
+            (self.sup.state(), &self.source)
+        {
+            // Arrival check at the end of a trajectory run: the estimate against the goal.
+            // (Live commands have no goal: the service stops where it is told to.)
+            let goal = src.traj.sample(src.traj.duration());
+            let distance = (goal.z[0] - odo.pose.x).hypot(goal.z[1] - odo.pose.y);
+            let heading = crate::angle::diff(goal.z[2], odo.pose.theta);
+            let mut worst = (0usize, 0.0f64);
+            for i in 0..self.n {
+                let e = meas.wheels[i].leg - goal.z[3 + i];
+                if e.abs() > worst.1.abs() || !e.is_finite() {
+                    worst = (i, e);
+                }
+            }
+            sup_in.goal_error = Some((distance, heading, worst.0, worst.1));
+        }
         for i in 0..self.n {
+            sup_in.enabled[i] = self.link.wheel_state(i) == Some(ModuleState::Enabled);
             sup_in.wheel_speed[i] = meas.wheels[i].wheel_speed;
             sup_in.steer_rate[i] = meas.wheels[i].steer_rate;
             match self.link.wheel_fault(i) {
@@ -1285,6 +1308,9 @@ impl CycleCore {
                 },
             };
         }
+        // What the drives are being told, for the following-error check of the next cycles:
+        // a wheel told to disable or brake is going to rest.
+        self.sup.note_command(cmd, &[enable && !brake; MAX_WHEELS]);
         out.clear();
         self.link.finish_cycle(t, &self.setpoints[..self.n], out);
         let settled = matches!(
@@ -1487,6 +1513,19 @@ fn icr_record(r: &ReferenceSample, wheels: &[[f64; 2]]) -> AvoidanceRecord {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_infeasible_tiny_limit_is_printed_readably() {
+        let mut p = Platform::justin();
+        p.limits.leg_speed = 1e-300;
+        let traj = crate::scenario::trajectory(crate::scenario::Scenario::Seed000, &p).unwrap();
+        let e = CycleCore::new(p, traj, super::super::RuntimeConfig::default())
+            .err()
+            .expect("infeasible");
+        let m = e.to_string();
+        assert!(m.contains("but `limits.leg_speed` = 1.000e-300;"), "{m}");
+        assert!(!m.contains("needs 0.000 "), "{m}");
+    }
 
     #[test]
     fn icr_of_a_pure_rotation_is_the_origin_and_translation_is_at_infinity() {

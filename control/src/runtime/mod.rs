@@ -41,6 +41,7 @@ pub use self::realtime::{
 pub use self::summary::{percentile, RunSummary};
 
 use crate::avoidance::AvoidanceConfig;
+use crate::num::{Fixed3, Num};
 use crate::supervisor::SupervisorConfig;
 use rollbase_driver::bus::BusError;
 use rollbase_driver::rx::CounterPolicy;
@@ -104,6 +105,37 @@ impl Default for RuntimeConfig {
     }
 }
 
+impl RuntimeConfig {
+    /// Checks the options against the platform's control period: the feedback window must
+    /// leave the cycle its compute budget, the supervisor's thresholds their ranges. Errors
+    /// name the option, the value and the bound.
+    pub fn validate(&self, p: &crate::platform::Platform) -> Result<(), RuntimeError> {
+        let dt = p.dt();
+        let max_window = dt - crate::platform::CYCLE_COMPUTE_BUDGET_S;
+        if !(self.feedback_window.is_finite()
+            && self.feedback_window > 0.0
+            && self.feedback_window <= max_window)
+        {
+            return Err(RuntimeError::Option {
+                field: "feedback_window",
+                value: Num(self.feedback_window).to_string(),
+                reason: format!(
+                    "must be > 0 and at most the period minus the compute budget ({} s at cycle_hz = {})",
+                    Num(max_window),
+                    Num(p.cycle_hz)
+                ),
+            });
+        }
+        self.supervisor
+            .validate(dt)
+            .map_err(|(field, value, reason)| RuntimeError::Option {
+                field,
+                value,
+                reason,
+            })
+    }
+}
+
 /// Errors that stop a run before or while it starts.
 #[derive(Debug, thiserror::Error)]
 pub enum RuntimeError {
@@ -122,7 +154,7 @@ pub enum RuntimeError {
     #[error("bus error: {0}")]
     Bus(#[from] BusError),
     /// The trajectory needs more than a limit of the platform allows.
-    #[error("infeasible trajectory: at t = {t:.3} s wheel {} needs {value:.3} but `limits.{field}` = {limit:.3}; slow the trajectory down or raise the limit in the platform file", wheel + 1)]
+    #[error("infeasible trajectory: at t = {} s wheel {} needs {} but `limits.{field}` = {}; slow the trajectory down or raise the limit in the platform file", Fixed3(*t), wheel + 1, Fixed3(*value), Fixed3(*limit))]
     Infeasible {
         /// The limit's field name in the platform file.
         field: &'static str,
@@ -134,5 +166,21 @@ pub enum RuntimeError {
         value: f64,
         /// The limit.
         limit: f64,
+    },
+    /// The trajectory's duration is not a finite time the runtime can check and run.
+    #[error("the trajectory lasts {} s: it must be a finite time of at most {} s (10 h); split longer runs", Num(*duration), crate::trajectory::MAX_WAYPOINT_TIME_S)]
+    Duration {
+        /// The duration (s).
+        duration: f64,
+    },
+    /// A runtime option is out of its range.
+    #[error("runtime option `{field}` = {value}: {reason}")]
+    Option {
+        /// The option's name (e.g. `feedback_window`, `supervisor.follow_timeout`).
+        field: &'static str,
+        /// The value, printed.
+        value: String,
+        /// What is wrong and what is expected.
+        reason: String,
     },
 }

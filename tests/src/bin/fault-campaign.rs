@@ -7,9 +7,10 @@
 //! ```
 //!
 //! Exit code 1 when any case fails its assertions.
+use rollbase_control::scenario::Scenario;
 use rollbase_control::supervisor::FaultReason;
 use rollbase_tests::campaign::*;
-use rollbase_vcan_sim::faults::{EncoderJump, EncoderStuck, MotorFault};
+use rollbase_vcan_sim::faults::{DriveGain, EncoderJump, EncoderStuck, MotorFault};
 use rollbase_vcan_sim::FaultSchedule;
 use std::fmt::Write as _;
 
@@ -74,10 +75,10 @@ fn main() {
     f.encoder_stuck.push(EncoderStuck { node: 1, at: 8.0 });
     rows.push(sim_fault(
         "encoder stuck (node 1, all encoders, 8 s)",
-        "no dedicated check: the frozen wheel disagrees with the others → odometry residual > 0.05 m/s for 25 cycles → slip fault, controlled stop",
+        "no dedicated check: the frozen readings stop following the commands → following error naming the module (before issue 19: the odometry residual, slip fault after 768 ms), controlled stop",
         f,
         8.0,
-        |r| matches!(r, FaultReason::Slip { .. }),
+        |r| matches!(r, FaultReason::FollowingError { wheel: 0, node: 1, .. }),
     ));
     let mut f = FaultSchedule::default();
     f.encoder_jump.push(EncoderJump {
@@ -98,6 +99,81 @@ fn main() {
     rows.push(iface_down(0.5, 1.0, 1.5, false));
     rows.push(iface_down(10.0, 10.2, 11.0, false));
     rows.push(bad_input());
+    // Following error (issue 19): drives that do not respond or respond at 50 %, both profiles.
+    let following = "measured wheel speed outside the range of the last 0.1 s of commands ± (0.5 rad/s + 25 %) for more than 0.2 s (CiA 402 0x6065/0x6066) → following-error fault naming the wheel, the drive's node, commanded and measured, controlled stop";
+    for cia in [false, true] {
+        let prof = if cia { "CiA 402" } else { "native" };
+        let base = || {
+            let o = rollbase_tests::RunOptions::new(Scenario::Seed000);
+            if cia {
+                o.cia402()
+            } else {
+                o
+            }
+        };
+        // The rolling drive of wheel i: node i+1 (native) or 2i+1 (CiA 402 defaults).
+        let drive = |i: u8| if cia { 2 * i + 1 } else { i + 1 };
+        let mut o = base();
+        o.plant.drive_time_constant = 1e300;
+        rows.push(following_case(
+            &format!("{prof}: motors that never respond (plant drive_time_constant = 1e300, from the start)"),
+            following,
+            &o,
+            None,
+            |r| matches!(r, FaultReason::FollowingError { .. }),
+        ));
+        for (gain, what) in [(0.0, "do not respond"), (0.5, "respond at 50 %")] {
+            let mut o = base();
+            for i in 0..4 {
+                o.faults.drive_gain.push(DriveGain {
+                    node: drive(i),
+                    at: 8.0,
+                    gain,
+                });
+            }
+            rows.push(following_case(
+                &format!("{prof}: all 4 rolling drives {what} from 8 s"),
+                following,
+                &o,
+                Some(8.0),
+                |r| matches!(r, FaultReason::FollowingError { .. }),
+            ));
+        }
+        let mut o = base();
+        o.faults.drive_gain.push(DriveGain {
+            node: drive(1),
+            at: 8.0,
+            gain: 0.5,
+        });
+        rows.push(following_case(
+            &format!("{prof}: wheel 2's rolling drive responds at 50 % from 8 s"),
+            following,
+            &o,
+            Some(8.0),
+            |r| matches!(r, FaultReason::FollowingError { wheel: 1, .. }),
+        ));
+        let mut o = base();
+        o.faults.drive_gain.push(DriveGain {
+            node: drive(1),
+            at: 8.0,
+            gain: 0.0,
+        });
+        rows.push(following_case(
+            &format!("{prof}: wheel 2's rolling drive does not respond from 8 s"),
+            "one wheel standing still while the others roll makes the wheels fight: odometry residual > 0.05 m/s for 25 cycles → slip fault, usually before the following error's 0.2 s time out; either is a controlled stop",
+            &o,
+            Some(8.0),
+            |r| {
+                matches!(
+                    r,
+                    FaultReason::Slip { .. } | FaultReason::FollowingError { wheel: 1, .. }
+                )
+            },
+        ));
+    }
+    rows.push(following_margin());
+    rows.push(not_arrived());
+    rows.push(simulator_stall(std::time::Duration::from_millis(80)));
 
     let mut md = String::new();
     let _ = writeln!(
@@ -107,7 +183,8 @@ fn main() {
          Every case runs the whole stack in lockstep — `CycleCore` → in-process virtual bus → simulated\n\
          wheel modules and plant → virtual bus → `CycleCore` — on virtual time with the simulator's fault\n\
          schedule, the bus medium's fault model, or a hook on the controller's receive path\n\
-         (`rollbase_tests::campaign`). Scenario: seed 000 (DFL), seed 1 unless stated. Detection time is\n\
+         (`rollbase_tests::campaign`). Scenario: seed 000 (DFL), seed 1, native profile unless stated;\n\
+         the simulator-stall row is the one wall-clock (real-time) case. Detection time is\n\
          from the injection to the first cycle in Fault. \"Controlled stop\" is checked: every wheel's\n\
          speed step ≤ wheel_accel·dt, steering rate 0, wheels at rest at the end.\n\n\
          | # | fault | policy | detection | platform outcome | data lost | result |\n|---|---|---|---|---|---|---|"

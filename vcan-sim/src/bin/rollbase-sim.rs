@@ -12,7 +12,9 @@
 //! bus carries CANopen instead: per wheel a CiA 402 rolling drive, a CiA 402 steering drive
 //! and a CiA 406 leg encoder, at the node-IDs of the file's `[cia402]` table, each with its
 //! object dictionary, SDO server, NMT, heartbeat, EMCY and PDOs (configured by the master
-//! over SDO). Ctrl-C stops it cleanly and prints a summary.
+//! over SDO). SIGINT (Ctrl-C) and SIGTERM (`kill`, systemd, a test harness) stop it cleanly:
+//! it prints its summary and exits 0. Its output never kills it: SIGPIPE is ignored and every
+//! write to stdout/stderr ignores errors (a closed terminal or a `| head` that went away).
 //!
 //! `--bus virtual` creates an in-process virtual bus that no other process can reach: it is
 //! only useful to check a configuration. To run the controller against the simulator without
@@ -23,11 +25,19 @@ use clap::Parser;
 use rollbase_control::Platform;
 use rollbase_driver::bus::{self, BusClock, BusError, CanBus, VirtualBus, VirtualBusConfig};
 use rollbase_vcan_sim::{spawn_realtime, FaultArgs, PlantConfig, SimConfig, SimError, Simulator};
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
+
+/// `eprintln!` that never panics: a closed or broken stderr loses the text, not the process.
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        let _ = writeln!(std::io::stderr(), $($arg)*);
+    }};
+}
 
 /// Simulated rollbase wheel modules and platform, speaking the wheel-module protocol.
 #[derive(Debug, Parser)]
@@ -88,7 +98,7 @@ enum CliError {
 
 fn open_bus(name: &str) -> Result<Box<dyn CanBus>, CliError> {
     if name == "virtual" {
-        eprintln!(
+        say!(
             "rollbase-sim: note: the virtual bus lives inside this process; no controller in \
              another process can reach it. `rollbase demo` runs the simulator in-process with \
              the controller. Use --bus vcan0 to talk to other processes."
@@ -181,15 +191,33 @@ fn run(cli: Cli) -> Result<(), CliError> {
     };
     let sim = Simulator::with_config(&platform, cfg)?;
     let bus = open_bus(&cli.bus)?;
+    // SIGINT and SIGTERM are both a clean stop; their handlers are in place before the
+    // simulator says it runs (a signal sent right after that line must not kill it). Should
+    // one not install, the simulator still runs (and says so).
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .map_err(CliError::Runtime)?;
+    let (mut term, mut int) = {
+        use tokio::signal::unix::{signal, SignalKind};
+        let _in_runtime = rt.enter();
+        let term = signal(SignalKind::terminate())
+            .map_err(|e| say!("rollbase-sim: cannot listen for SIGTERM ({e}); only Ctrl-C or --duration stop it cleanly"))
+            .ok();
+        let int = signal(SignalKind::interrupt())
+            .map_err(|e| say!("rollbase-sim: cannot listen for Ctrl-C ({e})"))
+            .ok();
+        (term, int)
+    };
     match platform.protocol {
-        rollbase_control::Protocol::Native => eprintln!(
+        rollbase_control::Protocol::Native => say!(
             "rollbase-sim: {} modules (nodes {:?}) of platform `{}` on {}; waiting for SYNC. Ctrl-C to stop.",
             sim.n(),
             sim.nodes(),
             platform.name,
             bus.name()
         ),
-        rollbase_control::Protocol::Cia402 => eprintln!(
+        rollbase_control::Protocol::Cia402 => say!(
             "rollbase-sim: CiA 402 profile, {} wheels = {} CANopen devices (nodes {:?}) of platform `{}` on {}; booting, then waiting for the master. Ctrl-C to stop.",
             sim.n(),
             sim.nodes().len(),
@@ -200,17 +228,15 @@ fn run(cli: Cli) -> Result<(), CliError> {
     }
     let stop = Arc::new(AtomicBool::new(false));
     let handle = spawn_realtime(sim, bus, stop.clone(), duration);
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .map_err(CliError::Runtime)?;
     rt.block_on(async {
         loop {
             tokio::select! {
-                r = tokio::signal::ctrl_c() => {
-                    if let Err(e) = r {
-                        eprintln!("rollbase-sim: cannot listen for Ctrl-C ({e}); stopping");
-                    }
+                Some(()) = async { term.as_mut()?.recv().await } => {
+                    say!("rollbase-sim: SIGTERM: stopping");
+                    break;
+                }
+                Some(()) = async { int.as_mut()?.recv().await } => {
+                    say!("rollbase-sim: Ctrl-C: stopping");
                     break;
                 }
                 _ = tokio::time::sleep(Duration::from_millis(50)) => {
@@ -226,7 +252,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
     let summary = result?;
     let st = sim.stats();
     let truth = sim.truth();
-    eprintln!(
+    say!(
         "rollbase-sim: ran {:.3} s: {} frames in, {} out ({} send errors, max send lateness {:?}); \
          {} sub-steps; injected: {} dropped, {} duplicated, {} corrupted",
         summary.elapsed.as_secs_f64(),
@@ -246,7 +272,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
         } else {
             format!(", {} (statusword 0x{:04X})", d.state402(), d.statusword())
         };
-        eprintln!(
+        say!(
             "  node {}: wheel {} {}, {:?}{state}, {} SDO served, {} SDO aborted, {} SYNCs, {} TPDOs, {} RPDOs, {} EMCY, {} heartbeat timeouts, {} RPDO timeouts",
             d.node(),
             d.wheel() + 1,
@@ -264,7 +290,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
     }
     let native_modules = if sim.devices().is_empty() { st.n } else { 0 };
     for (i, m) in st.modules[..native_modules].iter().enumerate() {
-        eprintln!(
+        say!(
             "  node {}: {:?}, {} SYNCs answered, {} setpoints ok, {} bad CRC, {} bad counter, {} watchdog trips",
             sim.nodes()[i],
             sim.module_states()[i],
@@ -275,19 +301,27 @@ fn run(cli: Cli) -> Result<(), CliError> {
             m.watchdog_trips
         );
     }
-    eprintln!(
+    say!(
         "  final pose x = {:.4} m, y = {:.4} m, θ = {:.4} rad",
-        truth.pose.x, truth.pose.y, truth.pose.theta
+        truth.pose.x,
+        truth.pose.y,
+        truth.pose.theta
     );
     Ok(())
 }
 
 fn main() -> ExitCode {
+    // A write to a closed pipe must be an error the writer ignores, never a signal that kills
+    // the process (the Rust runtime does this too; said here so nobody depends on it).
+    // SAFETY: setting a signal's disposition to SIG_IGN before any thread is started.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_IGN);
+    }
     let cli = Cli::parse();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("rollbase-sim: error: {e}");
+            say!("rollbase-sim: error: {e}");
             ExitCode::FAILURE
         }
     }

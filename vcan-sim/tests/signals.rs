@@ -1,0 +1,96 @@
+//! `rollbase-sim` as a service manager or a test harness runs it: SIGTERM and SIGINT are a
+//! clean stop (summary, exit 0), and a closed stdout/stderr never kills it.
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+fn sim() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_rollbase-sim"))
+}
+
+/// Waits for the child's exit for at most `limit`; kills it (and fails) after that.
+fn wait_bounded(child: &mut Child, limit: Duration) -> ExitStatus {
+    let start = Instant::now();
+    loop {
+        if let Some(s) = child.try_wait().expect("try_wait") {
+            return s;
+        }
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("rollbase-sim did not exit within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn sigterm_and_sigint_stop_it_cleanly_with_its_summary() {
+    for (sig, name) in [(libc::SIGTERM, "SIGTERM"), (libc::SIGINT, "SIGINT")] {
+        let mut child = sim()
+            .args(["--bus", "virtual"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start rollbase-sim");
+        let stderr = child.stderr.take().expect("stderr");
+        let (tx, rx) = mpsc::channel::<String>();
+        let reader = std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        // Running: it has said it waits for SYNC.
+        let deadline = Instant::now() + Duration::from_secs(20);
+        let mut seen = Vec::new();
+        while !seen.iter().any(|l: &String| l.contains("waiting for SYNC")) {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match rx.recv_timeout(left) {
+                Ok(l) => seen.push(l),
+                Err(_) => {
+                    let _ = child.kill();
+                    panic!("no start line within 20 s: {seen:?}");
+                }
+            }
+        }
+        // SAFETY: sending a signal to our own child process.
+        assert_eq!(unsafe { libc::kill(child.id() as libc::pid_t, sig) }, 0);
+        let status = wait_bounded(&mut child, Duration::from_secs(20));
+        let _ = reader.join();
+        seen.extend(rx.try_iter());
+        assert_eq!(
+            status.code(),
+            Some(0),
+            "{name}: exit {status:?} (a clean stop exits 0)\n{}",
+            seen.join("\n")
+        );
+        let text = seen.join("\n");
+        assert!(
+            text.contains("rollbase-sim: ran") && text.contains("final pose"),
+            "{name}: no summary:\n{text}"
+        );
+    }
+}
+
+#[test]
+fn a_closed_stdout_and_stderr_never_kill_it() {
+    let mut child = sim()
+        .args(["--bus", "virtual", "--duration", "0.3"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start rollbase-sim");
+    // Nobody reads its output: both pipes are closed before it writes its first line.
+    drop(child.stdout.take());
+    drop(child.stderr.take());
+    let status = wait_bounded(&mut child, Duration::from_secs(20));
+    assert_eq!(
+        status.code(),
+        Some(0),
+        "exit {status:?}: writing to a closed pipe must not end it"
+    );
+}
