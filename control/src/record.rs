@@ -14,6 +14,10 @@ pub const MAX_RX_FRAMES: usize = 48;
 /// for 24 devices and one RPDO per drive while booting).
 pub const MAX_TX_FRAMES: usize = 48;
 
+/// Commands recorded per cycle (a velocity source publishes at 10–50 Hz: one a cycle at most,
+/// normally; a burst beyond this is counted in [`CycleRecord::commands_in_omitted`]).
+pub const MAX_RECORDED_COMMANDS: usize = 8;
+
 /// One raw CAN frame as recorded.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct FrameRecord {
@@ -128,6 +132,14 @@ pub struct CycleRecord {
     pub commands: crate::ports::CommandStats,
     /// What the shaper (or the time scaling) does with the reference.
     pub shaping: crate::ports::ShapingState,
+    /// The state port's value of this cycle (what the ROS 2 node publishes; recorded as the
+    /// ROS 2 topics of a bag).
+    pub base: crate::ports::BaseState,
+    /// The commands the cycle took since the last record, in order (the first
+    /// [`MAX_RECORDED_COMMANDS`]; see `commands_in_omitted`).
+    pub commands_in: [Option<crate::ports::CommandEvent>; MAX_RECORDED_COMMANDS],
+    /// Commands taken in this cycle beyond [`MAX_RECORDED_COMMANDS`] (counted, not recorded).
+    pub commands_in_omitted: u32,
 }
 
 impl CycleRecord {
@@ -163,6 +175,9 @@ impl CycleRecord {
             timing: TimingRecord::default(),
             commands: Default::default(),
             shaping: Default::default(),
+            base: Default::default(),
+            commands_in: [None; MAX_RECORDED_COMMANDS],
+            commands_in_omitted: 0,
         }
     }
 

@@ -182,11 +182,7 @@ pub(crate) fn selftest(a: SelftestArgs) -> Result<i32, CliError> {
             stop.store(true, Ordering::SeqCst);
         });
     }
-    let node_fqn = if opts.namespace == "/" {
-        format!("/{}", opts.node_name)
-    } else {
-        format!("{}/{}", opts.namespace, opts.node_name)
-    };
+    let node_fqn = opts.node_fqn();
     outln!(
         "{}",
         json!({"ready": true, "domain_id": node.domain_id(), "node": node_fqn, "wheels": n,

@@ -13,6 +13,7 @@
 
 use clap::Args;
 use rollbase::commands::{self, TimedCommand};
+use rollbase::ros2::{spawn_node, Ros2Args, Ros2Options};
 use rollbase_control::ports::{BaseState, CommandEvent, CommandKind};
 use rollbase_control::record::CycleRecord;
 use rollbase_control::runtime::{CycleCore, RuntimeConfig};
@@ -42,6 +43,40 @@ pub(crate) type StateConsumer = Box<dyn FnMut(&BaseState) + Send>;
 const COMMAND_QUEUE: usize = 256;
 /// State-port values queued toward the consumers (at 250 Hz: a quarter of a second).
 const STATE_QUEUE: usize = 64;
+/// States queued toward the ROS 2 node (it publishes at ≤ 50 Hz and keeps only the latest).
+const NODE_STATE_QUEUE: usize = 16;
+
+/// `--ros2` and the node's options, on `drive` and `demo`.
+#[derive(Args, Clone, Debug, Default)]
+pub(crate) struct Ros2Run {
+    /// Be a ROS 2 node (over DDS; no ROS installation needed): take `cmd_vel` and leg
+    /// commands, publish odom, tf, joint_states, diagnostics and the supervisor state, serve
+    /// ~/stop and ~/rearm. See README "ROS 2". Honours ROS_DOMAIN_ID.
+    #[arg(long)]
+    pub(crate) ros2: bool,
+    #[command(flatten)]
+    pub(crate) node: Ros2Args,
+}
+
+impl Ros2Run {
+    /// The node's options with `--ros2` (checked against the platform's `wheels`), `None`
+    /// without it; `--ros2-*` options without `--ros2` are refused rather than ignored.
+    pub(crate) fn options(&self, wheels: usize) -> Result<Option<Ros2Options>, CliError> {
+        if !self.ros2 {
+            if self.node != Ros2Args::default() {
+                return Err(CliError::Usage(
+                    "--ros2-* options need --ros2 (they configure the ROS 2 node)".into(),
+                ));
+            }
+            return Ok(None);
+        }
+        let opts = self.node.to_options();
+        opts.validate(Some(wheels))?;
+        // The domain comes from ROS_DOMAIN_ID when not given: check it now, not after boot.
+        opts.resolve_domain_id()?;
+        Ok(Some(opts))
+    }
+}
 
 #[derive(Args, Debug)]
 pub(crate) struct DriveArgs {
@@ -52,6 +87,8 @@ pub(crate) struct DriveArgs {
     /// the platform live"). Without it the platform holds at rest until stopped.
     #[arg(long, value_name = "FILE|-")]
     pub(crate) commands: Option<PathBuf>,
+    #[command(flatten)]
+    pub(crate) ros2: Ros2Run,
     #[command(flatten)]
     pub(crate) common: CommonRun,
 }
@@ -136,14 +173,32 @@ fn send_at(
     }
 }
 
-/// Starts the thread of a command source (none for [`Source::None`]).
+/// Starts the thread of a command source (none for [`Source::None`]). With `ends_run`, the
+/// end of a file or of stdin ends the stream (the run ends once at rest); without it (another
+/// source such as ROS 2 goes on) it only lets the command timeout stop the platform.
 pub(crate) fn start_source(
     source: Source,
     tx: SyncSender<CommandEvent>,
     ready: Arc<Ready>,
     stop: Arc<AtomicBool>,
     platform: &Platform,
+    ends_run: bool,
 ) -> Result<(), CliError> {
+    let end = move |tx: &SyncSender<CommandEvent>, what: &str| {
+        if ends_run {
+            tracing::info!(
+                "end of {what}: the command timeout stops the platform, then the run ends"
+            );
+            let _ = tx.send(CommandEvent {
+                t: 0.0,
+                kind: CommandKind::EndOfStream,
+            });
+        } else {
+            tracing::info!(
+                "end of {what}: the command timeout stops the platform; other sources go on"
+            );
+        }
+    };
     let p = platform.clone();
     let spawn = |name: &str, f: Box<dyn FnOnce() + Send>| {
         std::thread::Builder::new()
@@ -164,11 +219,7 @@ pub(crate) fn start_source(
                         return;
                     }
                 }
-                tracing::info!("end of the command file: the command timeout stops the platform, then the run ends");
-                let _ = tx.send(CommandEvent {
-                    t: 0.0,
-                    kind: CommandKind::EndOfStream,
-                });
+                end(&tx, "the command file");
             }),
         ),
         Source::Stdin => spawn(
@@ -221,13 +272,7 @@ pub(crate) fn start_source(
                         Err(e) => tracing::warn!("{e}; skipped"),
                     }
                 }
-                tracing::info!(
-                    "end of stdin: the command timeout stops the platform, then the run ends"
-                );
-                let _ = tx.send(CommandEvent {
-                    t: 0.0,
-                    kind: CommandKind::EndOfStream,
-                });
+                end(&tx, "stdin");
             }),
         ),
         Source::Keyboard => super::teleop::start(tx, ready, stop, &p),
@@ -312,18 +357,48 @@ fn serve(
     source: Source,
     common: &CommonRun,
     on_state: Option<StateConsumer>,
+    ros2: Option<Ros2Options>,
 ) -> Result<(), CliError> {
     let (cmd_tx, cmd_rx): (SyncSender<CommandEvent>, Receiver<CommandEvent>) =
         std::sync::mpsc::sync_channel(COMMAND_QUEUE);
     let (state_tx, state_rx) = std::sync::mpsc::sync_channel::<BaseState>(STATE_QUEUE);
     let ready = Arc::new(Ready::default());
     let platform = s.core.platform().clone();
+    // The ROS 2 node: a second command source on the same port, and a state consumer. It
+    // starts before the cycle so that a DDS failure refuses the run before the platform moves.
+    let node = match ros2 {
+        Some(opts) => {
+            let (node_tx, node_rx) = std::sync::mpsc::sync_channel::<BaseState>(NODE_STATE_QUEUE);
+            let handle = spawn_node(opts.clone(), cmd_tx.clone(), node_rx, Instant::now())?;
+            tracing::info!(
+                "ROS 2 node {} on DDS domain {}: commands on {} and {}, state on {}, {}, {}, {}{}; services {}/stop and {}/rearm",
+                opts.node_fqn(),
+                handle.domain_id(),
+                opts.topic(&opts.cmd_vel_topic),
+                opts.topic(&opts.leg_topic),
+                opts.topic("odom"),
+                opts.topic("joint_states"),
+                opts.topic("diagnostics"),
+                opts.topic("supervisor_state"),
+                if opts.publish_tf { ", tf" } else { "" },
+                opts.node_fqn(),
+                opts.node_fqn(),
+            );
+            Some((handle, node_tx))
+        }
+        None => None,
+    };
+    let (node, node_tx) = match node {
+        Some((h, tx)) => (Some(h), Some(tx)),
+        None => (None, None),
+    };
     start_source(
         source,
         cmd_tx.clone(),
         ready.clone(),
         s.stop.clone(),
         &platform,
+        node.is_none(),
     )?;
     // The state port's consumer: readiness for the sources, then whoever listens.
     let consumer = {
@@ -335,6 +410,11 @@ fn serve(
                 while let Ok(st) = state_rx.recv() {
                     if st.state == SupervisorState::Tracking {
                         ready.set();
+                    }
+                    if let Some(tx) = &node_tx {
+                        // The node decimates to its rates; when it lags, it misses a state
+                        // rather than delaying this thread.
+                        let _ = tx.try_send(st);
                     }
                     if let Some(f) = on_state.as_mut() {
                         f(&st);
@@ -366,6 +446,19 @@ fn serve(
     drop(state_tx);
     drop(cmd_tx);
     let _ = consumer.join();
+    if let Some(n) = node {
+        let st = n.stats();
+        tracing::info!(
+            "ROS 2 node: {} commands passed on ({} dropped, {} refused), {} messages published ({} failed), {} service calls",
+            st.commands_sent.load(Ordering::Relaxed),
+            st.commands_dropped.load(Ordering::Relaxed),
+            st.commands_refused.load(Ordering::Relaxed),
+            st.published.load(Ordering::Relaxed),
+            st.publish_errors.load(Ordering::Relaxed),
+            st.services_answered.load(Ordering::Relaxed),
+        );
+        n.shutdown();
+    }
     print_report(&report, common.json);
     Ok(())
 }
@@ -376,7 +469,11 @@ pub(crate) fn drive(a: DriveArgs) -> Result<i32, CliError> {
     let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
     let cfg = runtime_config(&a.common, None)?;
     let source = Source::from_arg(a.commands.as_deref())?;
-    let plan = OutputPlan::of(&a.common, "drive");
+    let ros2 = a.ros2.options(platform.n())?;
+    let mut plan = OutputPlan::of(&a.common, "drive");
+    if let Some(o) = &ros2 {
+        plan.ros2 = o.clone();
+    }
     plan.check()?;
     let core = CycleCore::new_live(platform, cfg)?;
     let mut canbus = bus::open(&a.bus)?;
@@ -394,7 +491,7 @@ pub(crate) fn drive(a: DriveArgs) -> Result<i32, CliError> {
         signalled,
         origin,
     };
-    serve(&mut s, canbus.as_mut(), source, &a.common, None)?;
+    serve(&mut s, canbus.as_mut(), source, &a.common, None, ros2)?;
     finish(
         s.sinks,
         &s.core,
@@ -427,8 +524,24 @@ pub(crate) fn demo_live(a: DemoArgs) -> Result<i32, CliError> {
         Some(p) => PlantConfig::load(p)?,
         None => PlantConfig::default(),
     };
-    let name = if a.teleop { "teleop" } else { "commands" };
-    let plan = OutputPlan::of(&a.common, name);
+    let ros2 = a.ros2.options(platform.n())?;
+    if a.lockstep && ros2.is_some() {
+        return Err(CliError::Usage(
+            "--ros2 runs in real time: drop --lockstep (virtual time cannot wait for ROS 2 commands)"
+                .into(),
+        ));
+    }
+    let name = if a.teleop {
+        "teleop"
+    } else if a.commands.is_none() && ros2.is_some() {
+        "ros2"
+    } else {
+        "commands"
+    };
+    let mut plan = OutputPlan::of(&a.common, name);
+    if let Some(o) = &ros2 {
+        plan.ros2 = o.clone();
+    }
     plan.check()?;
     let core = CycleCore::new_live(platform.clone(), cfg)?;
     let sim = Simulator::with_config(
@@ -496,7 +609,7 @@ pub(crate) fn demo_live(a: DemoArgs) -> Result<i32, CliError> {
             } else {
                 None
             };
-            serve(&mut s, &mut ctrl, source, &a.common, on_state)?;
+            serve(&mut s, &mut ctrl, source, &a.common, on_state, ros2)?;
         }
     }
     finish(

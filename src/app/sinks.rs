@@ -31,6 +31,9 @@ pub(crate) struct OutputPlan {
     pub(crate) candump: Option<PathBuf>,
     /// The plots directory.
     pub(crate) plots: Option<PathBuf>,
+    /// Topic names, frames and rates of the ROS 2 topics in the recording (those of the
+    /// node, with `--ros2`; the defaults otherwise).
+    pub(crate) ros2: rollbase::ros2::Ros2Options,
 }
 
 impl OutputPlan {
@@ -46,6 +49,7 @@ impl OutputPlan {
             record,
             candump: common.candump.clone(),
             plots: common.plots.clone(),
+            ros2: Default::default(),
         }
     }
 
@@ -162,6 +166,8 @@ pub(crate) struct Sinks {
     iface: String,
     pub(crate) time_origin: f64,
     error: Option<CliError>,
+    /// The recorder's warning about the state was logged.
+    state_warned: bool,
 }
 
 impl Sinks {
@@ -183,7 +189,7 @@ impl Sinks {
                     &meta,
                     &RecordOptions {
                         can_interface: iface.to_string(),
-                        ..Default::default()
+                        ros2: plan.ros2.clone(),
                     },
                 )?;
                 Some((rec, tmp, p.clone()))
@@ -214,6 +220,7 @@ impl Sinks {
             iface: iface.into(),
             time_origin,
             error: None,
+            state_warned: false,
         })
     }
 
@@ -233,7 +240,24 @@ impl Sinks {
             return;
         }
         if let Some((m, _, target)) = &mut self.mcap {
-            if let Err(e) = m.write_cycle(r, wheel_xy) {
+            // The cycle, then the ROS 2 topics: the state (decimated to the node's rates by
+            // the recorder) and the commands the cycle took.
+            let mut st = r.base;
+            st.log_time_ns = r.log_time_ns;
+            st.t = r.t;
+            let written = m.write_cycle(r, wheel_xy).and_then(|()| {
+                if let Some(w) = m.write_state(&st)? {
+                    if !self.state_warned {
+                        tracing::warn!("recording: {w}");
+                        self.state_warned = true;
+                    }
+                }
+                for ev in r.commands_in.iter().flatten() {
+                    m.write_command(ev, r.log_time_ns)?;
+                }
+                Ok(())
+            });
+            if let Err(e) = written {
                 self.error = Some(CliError::Recording {
                     path: target.display().to_string(),
                     source: Box::new(e.into()),

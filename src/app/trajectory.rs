@@ -44,6 +44,10 @@ pub(crate) struct DemoArgs {
     /// Q/E rotate, +/- legs out/in, space stops, R re-arms, Esc or Ctrl-C quits).
     #[arg(long, conflicts_with = "lockstep")]
     pub(crate) teleop: bool,
+    /// ROS 2: with `--ros2` the simulated platform runs in real time, starting at rest, and
+    /// takes its motion commands from `cmd_vel` until Ctrl-C or SIGTERM.
+    #[command(flatten)]
+    pub(crate) ros2: super::service::Ros2Run,
     #[command(flatten)]
     pub(crate) common: CommonRun,
 }
@@ -65,11 +69,12 @@ pub(crate) struct RunArgs {
 }
 
 pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
-    if a.commands.is_some() || a.teleop {
+    if a.commands.is_some() || a.teleop || a.ros2.ros2 {
         return super::service::demo_live(a);
     }
     // Everything is validated before anything is created or started.
     let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
+    a.ros2.options(platform.n())?; // refuses --ros2-* options without --ros2
     let sc: Scenario = a.scenario.parse()?;
     let traj = scenario::trajectory(sc, &platform)?;
     let duration = traj.duration();

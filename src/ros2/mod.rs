@@ -418,6 +418,12 @@ impl Ros2Options {
         }
     }
 
+    /// The node's fully qualified name (`/rollbase`, `/robot1/rollbase`); its services are
+    /// under it (`~/stop` is `<fqn>/stop`).
+    pub fn node_fqn(&self) -> String {
+        self.topic(&self.node_name)
+    }
+
     /// A topic's absolute name: the namespace joined with the relative name.
     pub fn topic(&self, relative: &str) -> String {
         if self.namespace == "/" {

@@ -17,7 +17,7 @@ use crate::ports::{
     BaseState, CommandEvent, CommandKind, CommandStats, JointState, Limiting, ModuleDiagnostics,
     OdometryState, ShapingState,
 };
-use crate::record::{AvoidanceRecord, CycleRecord, FrameRecord};
+use crate::record::{AvoidanceRecord, CycleRecord, FrameRecord, MAX_RECORDED_COMMANDS};
 use crate::shaper::Shaper;
 use crate::supervisor::FaultReason;
 use crate::supervisor::{
@@ -185,6 +185,11 @@ pub struct CycleCore {
     armed_cycle: u64,
     /// Latest time passed in (s).
     now: f64,
+    /// Commands taken since the last finished cycle (for the record), their count, and those
+    /// beyond the record's room.
+    taken: [Option<CommandEvent>; MAX_RECORDED_COMMANDS],
+    n_taken: usize,
+    taken_omitted: u32,
     setpoints: [Setpoint; MAX_WHEELS],
     odom: Odometry,
     sup: Supervisor,
@@ -335,6 +340,9 @@ impl CycleCore {
             arm_pending: false,
             armed_cycle: 0,
             now: 0.0,
+            taken: [None; MAX_RECORDED_COMMANDS],
+            n_taken: 0,
+            taken_omitted: 0,
             setpoints: [Setpoint::default(); MAX_WHEELS],
             odom,
             sup,
@@ -524,6 +532,12 @@ impl CycleCore {
     /// in fault: re-arm first). With a trajectory source only `Shutdown` (and `Stop`) act: a
     /// controlled stop.
     pub fn command(&mut self, ev: CommandEvent) {
+        if self.n_taken < MAX_RECORDED_COMMANDS {
+            self.taken[self.n_taken] = Some(ev);
+            self.n_taken += 1;
+        } else {
+            self.taken_omitted = self.taken_omitted.saturating_add(1);
+        }
         let tracking = self.sup.state() == SupervisorState::Tracking;
         let rearm = {
             let Source::Live(l) = &mut self.source else {
@@ -860,6 +874,10 @@ impl CycleCore {
         self.publish_state(t, &meas, &odo, alive, dt);
         self.record.commands = self.state.commands;
         self.record.shaping = self.state.shaping;
+        self.record.base = self.state;
+        self.record.commands_in = std::mem::replace(&mut self.taken, [None; MAX_RECORDED_COMMANDS]);
+        self.record.commands_in_omitted = std::mem::take(&mut self.taken_omitted);
+        self.n_taken = 0;
         self.cycle += 1;
         k
     }

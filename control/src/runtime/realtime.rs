@@ -243,6 +243,15 @@ pub fn run_realtime_io(
         // cycle's samples). Then SYNC (and whatever else is due at the cycle start), one sleep
         // to the window's end, one drain: two wake-ups a cycle instead of one per frame (the
         // cycle waits for the window's end anyway).
+        core.start_cycle(td, &mut out);
+        drain(bus, core, td - 1e-6, &mut report);
+        send_all(bus, core, &out, &mut report);
+        sleep_until(deadline + window_ns);
+        let now_rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
+        drain(bus, core, now_rt, &mut report);
+        // Commands last, just before the setpoints are computed: a command that arrived
+        // during the feedback window acts in this cycle's setpoints (latency ≤ one period plus
+        // the compute time), not one cycle later.
         if let Some(rx) = io.commands {
             for _ in 0..MAX_COMMANDS_PER_CYCLE {
                 match rx.try_recv() {
@@ -254,12 +263,6 @@ pub fn run_realtime_io(
                 }
             }
         }
-        core.start_cycle(td, &mut out);
-        drain(bus, core, td - 1e-6, &mut report);
-        send_all(bus, core, &out, &mut report);
-        sleep_until(deadline + window_ns);
-        let now_rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
-        drain(bus, core, now_rt, &mut report);
         let collected = ts_ns(&monotonic_now());
         let tw = (collected - start) as f64 * 1e-9;
         core.finish_cycle(tw, &mut out);
@@ -288,6 +291,10 @@ pub fn run_realtime_io(
             s.log_time_ns = time_origin_unix_ns.saturating_add((deadline - start).max(0) as u64);
             s.t = td;
             s.diagnostics.deadline_misses = report.deadline_misses;
+        }
+        {
+            let st = *core.base_state();
+            core.record_mut().base = st;
         }
         if let Some(tx) = sink {
             match tx.try_send(*core.record()) {
