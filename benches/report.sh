@@ -33,3 +33,11 @@ cargo bench -j"$JOBS" -p rollbase-tests --bench cycle_core -- "${CRIT_ARGS[@]}" 
   --bench-log "$LOGDIR/bench-control.log" \
   --bench-log "$LOGDIR/bench-cycle-core.log" \
   --cycles "$CYCLES"
+# The ROS 2 section (cmd_vel latency, cost of drive --ros2): DDS only in a private network
+# namespace with loopback alone (discovery multicasts). perf-report keeps the section it finds.
+cargo build -j"$JOBS" --release -p rollbase -p rollbase-vcan-sim -p rollbase-tests --bin rollbase --bin rollbase-sim --bin ros2-perf
+if unshare -n true 2>/dev/null; then
+  unshare -n sh -c "ip link set lo up && '$TARGET_DIR/release/ros2-perf' --out docs/performance.md"
+else
+  echo "report.sh: cannot create a network namespace (unshare -n); the ROS 2 section is left as it was" >&2
+fi

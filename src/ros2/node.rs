@@ -169,7 +169,8 @@ fn split_type(def: &msg::MsgDef) -> (&str, &str) {
     (pkg, ty)
 }
 
-fn publisher<T: RosMsg + ros2_client::Message>(
+/// A publisher of `T` on `topic` with ROS 2's default QoS (also for peers in tools and tests).
+pub fn publisher<T: RosMsg + ros2_client::Message>(
     node: &mut Node,
     topic: &str,
 ) -> Result<Publisher<T>, Ros2Error> {
@@ -187,7 +188,8 @@ fn publisher<T: RosMsg + ros2_client::Message>(
         .map_err(entity_err("publisher", topic))
 }
 
-fn subscription<T: RosMsg + ros2_client::Message + 'static>(
+/// A subscription to `T` on `topic` with ROS 2's default QoS (also for peers in tools and tests).
+pub fn subscription<T: RosMsg + ros2_client::Message + 'static>(
     node: &mut Node,
     topic: &str,
 ) -> Result<ros2_client::dds::Subscription<T>, Ros2Error> {

@@ -1073,6 +1073,18 @@ fn report(o: &Options) -> Result<(), String> {
     if let Some(dir) = o.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
     }
+    // The ROS 2 section is written by `ros2-perf` (it needs a network namespace): keep it.
+    if let Ok(old) = std::fs::read_to_string(&o.out) {
+        const BEGIN: &str = "<!-- ros2-perf:begin -->";
+        const END: &str = "<!-- ros2-perf:end -->";
+        if let (Some(b), Some(e)) = (old.find(BEGIN), old.find(END)) {
+            if e > b {
+                md.push('\n');
+                md.push_str(&old[b..e + END.len()]);
+                md.push('\n');
+            }
+        }
+    }
     std::fs::write(&o.out, &md).map_err(|e| format!("{}: {e}", o.out.display()))?;
     print!("{md}");
     eprintln!("perf-report: wrote {}", o.out.display());
