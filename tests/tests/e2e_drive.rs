@@ -204,10 +204,9 @@ fn a_pivot_about_a_wheel_holds_that_wheel_without_chatter() {
     assert!(rot > 0.5);
 }
 
-#[test]
-fn an_icr_sweeping_across_a_wheel_does_not_make_it_chatter() {
-    // The ICR moves along a line through wheel 0's contact point, from 30 cm before it to 30
-    // cm beyond, over 6 s; commands every 40 ms (a joystick moved slowly).
+/// The ICR moves along a line through wheel 0's contact point, from 30 cm before it to 30 cm
+/// beyond, over 6 s; commands every 40 ms (a joystick moved slowly); then a stop.
+fn sweep_commands() -> Vec<CommandEvent> {
     let p = rollbase_control::Platform::justin();
     let a = p.wheels[0].alpha;
     let l = p.wheels[0].lambda_nominal;
@@ -226,7 +225,14 @@ fn an_icr_sweeping_across_a_wheel_does_not_make_it_chatter() {
         cmds.push(motion(t + 0.4 * k as f64, 0.0, 0.0, 0.0, None));
     }
     cmds.push(ev(t + 2.4, CommandKind::EndOfStream));
-    let out = run_live(&LiveOptions::default(), &cmds);
+    cmds
+}
+
+#[test]
+fn an_icr_sweeping_across_a_wheel_does_not_make_it_chatter() {
+    // The ICR moves along a line through wheel 0's contact point, from 30 cm before it to 30
+    // cm beyond, over 6 s; commands every 40 ms (a joystick moved slowly).
+    let out = run_live(&LiveOptions::default(), &sweep_commands());
     eprintln!("{}", out.summary.to_json());
     assert_commands_within_limits(&out);
     assert_tracking_bounds(&out);
