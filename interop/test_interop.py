@@ -145,9 +145,12 @@ def test_mcap_reader_opens_demo_recordings_and_counts_match(tmp_path, scenario):
     summary_json, _, rec = demo(tmp_path, scenario)
     expected = summary_json["recorded_messages"]
     topics = documented_topics()
+    # Every recording also carries the ROS 2 node's state topics (from the state port, at the
+    # node's default rates; src/record.rs); a trajectory run takes no commands (no cmd_vel).
+    state_topics = {"/odom", "/tf", "/joint_states", "/diagnostics", "/supervisor_state"}
     # Topics without messages (no rejected frame in a clean run) have no channel.
-    assert set(expected) <= set(topics), expected
-    assert set(topics) - set(expected) <= {"/can/rejected"}, expected
+    assert set(expected) <= set(topics) | state_topics, expected
+    assert (set(topics) | state_topics) - set(expected) <= {"/can/rejected"}, expected
     with open(rec, "rb") as f:
         reader = make_reader(f, validate_crcs=True)
         assert reader.get_header().profile == "ros2"
