@@ -658,3 +658,545 @@ fn a_demo_whose_motors_do_not_respond_fails_with_a_following_error() {
     }
     let _ = std::fs::remove_dir_all(dir);
 }
+
+// ---------------------------------------------------------------------------------------------
+// Issue 19, findings 5 and 6: recordings are never lost, outputs and inputs are checked first.
+// (One block; see src/app/sinks.rs for the rules these tests hold the CLI to.)
+// ---------------------------------------------------------------------------------------------
+
+/// A fresh scratch directory for one test.
+fn scratch(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("rollbase-cli-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// The temporary files (`.NAME.partial-PID…`) in `dir`.
+fn partials(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut v: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.path())
+        .filter(|p| {
+            p.file_name()
+                .is_some_and(|n| n.to_string_lossy().contains(".partial-"))
+        })
+        .collect();
+    v.sort();
+    v
+}
+
+/// Bytes that are not an MCAP file, to stand for an earlier recording.
+fn known_bytes() -> Vec<u8> {
+    (0..70_000u32).map(|i| (i * 31 % 251) as u8).collect()
+}
+
+/// A recording as a reader sees it: the MCAP summary (index) is present and counts more than
+/// zero messages, and every message reads back with its chunk CRCs checked.
+fn assert_readable_recording(path: &std::path::Path) -> u64 {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let summary = mcap::Summary::read(&bytes)
+        .unwrap_or_else(|e| panic!("{}: summary unreadable: {e}", path.display()))
+        .unwrap_or_else(|| panic!("{}: no summary section", path.display()));
+    let stats = summary.stats.expect("statistics record");
+    assert!(stats.message_count > 0, "{}: empty", path.display());
+    let read = rollbase::record::read_recording(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    assert!(
+        !read.is_empty(),
+        "{}: no per-cycle messages",
+        path.display()
+    );
+    stats.message_count
+}
+
+#[test]
+fn refused_runs_leave_an_existing_recording_byte_identical() {
+    let _serial = serial();
+    let dir = scratch("refused");
+    let old = known_bytes();
+    std::fs::write(dir.join("old.mcap"), &old).unwrap();
+    std::fs::write(dir.join("old.log"), &old[..1000]).unwrap();
+    std::fs::write(
+        dir.join("node99.toml"),
+        "[[motor_fault]]\nnode = 99\nat = 1.0\n",
+    )
+    .unwrap();
+    let cases: [(&[&str], &str); 3] = [
+        // Refused by validation before the bus is opened.
+        (
+            &[
+                "run",
+                "--bus",
+                "nosuchcan7",
+                "--trajectory",
+                "scenario:seed000",
+                "--duration=-5",
+            ],
+            "--duration -5",
+        ),
+        // Valid arguments, but the bus cannot be opened: still nothing written.
+        (
+            &[
+                "run",
+                "--bus",
+                "nosuchcan7",
+                "--trajectory",
+                "scenario:seed000",
+                "--duration=5",
+            ],
+            "nosuchcan7",
+        ),
+        (
+            &["demo", "--lockstep", "--faults", "node99.toml"],
+            "motor_fault[0].node` = 99",
+        ),
+    ];
+    for (args, says) in cases {
+        let out = rollbase()
+            .current_dir(&dir)
+            .args(args)
+            .args(["--record", "old.mcap", "--candump", "old.log"])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains(says), "{args:?}: expected `{says}` in {err}");
+        assert!(
+            std::fs::read(dir.join("old.mcap")).unwrap() == old,
+            "{args:?}: the earlier recording was changed"
+        );
+        assert!(
+            std::fs::read(dir.join("old.log")).unwrap() == old[..1000],
+            "{args:?}: the earlier candump log was changed"
+        );
+        assert_eq!(partials(&dir), Vec::<std::path::PathBuf>::new(), "{args:?}");
+    }
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn the_same_file_for_record_and_candump_is_refused_before_anything_is_written() {
+    let _serial = serial();
+    let dir = scratch("same");
+    let abs = dir.join("same.out").display().to_string();
+    for (record, candump) in [
+        ("same.out", "same.out"),
+        ("./same.out", abs.as_str()),
+        ("sub/../same.out", "same.out"),
+    ] {
+        std::fs::create_dir_all(dir.join("sub")).unwrap();
+        let out = rollbase()
+            .current_dir(&dir)
+            .args([
+                "demo",
+                "--lockstep",
+                "--record",
+                record,
+                "--candump",
+                candump,
+            ])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{record} {candump}: {err}");
+        assert!(
+            err.contains("--record and --candump both name") && err.contains("same.out"),
+            "{err}"
+        );
+        let left: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .filter_map(|e| e.ok())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| n != "sub")
+            .collect();
+        assert!(left.is_empty(), "{record} {candump}: wrote {left:?}");
+    }
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn a_demo_whose_stdout_and_stderr_go_away_still_finishes_its_recording() {
+    use std::io::BufRead;
+    use std::os::unix::process::CommandExt;
+    let _serial = serial();
+    let dir = scratch("sigpipe");
+    // `rollbase demo --lockstep --record x.mcap 2>&1 | head -1`: one pipe for both, its
+    // reader gone after the first line.
+    let (reader, writer) = std::io::pipe().expect("pipe");
+    let mut child = rollbase()
+        .current_dir(&dir)
+        .args(["demo", "--lockstep", "--record", "x.mcap"])
+        .stdout(writer.try_clone().unwrap())
+        .stderr(writer)
+        .spawn()
+        .expect("start rollbase demo");
+    let mut first = String::new();
+    let mut lines = std::io::BufReader::new(reader);
+    lines.read_line(&mut first).unwrap();
+    assert!(first.starts_with("demo: "), "{first}");
+    drop(lines); // the reader goes away: every later write gets EPIPE
+    let status = child.wait().unwrap();
+    // Completed run: exit 0 (not killed by SIGPIPE, not 141).
+    assert_eq!(status.code(), Some(0), "{status:?}");
+    assert_readable_recording(&dir.join("x.mcap"));
+    assert!(partials(&dir).is_empty(), "{:?}", partials(&dir));
+
+    // Both closed: the process starts without fds 1 and 2.
+    let mut c = rollbase();
+    c.current_dir(&dir)
+        .args(["demo", "--lockstep", "--json", "--record", "y.mcap"]);
+    // SAFETY: close() is async-signal-safe; the child closes its own stdout and stderr.
+    unsafe {
+        c.pre_exec(|| {
+            libc::close(1);
+            libc::close(2);
+            Ok(())
+        });
+    }
+    let status = c.status().unwrap();
+    assert_eq!(status.code(), Some(0), "{status:?}");
+    let n = assert_readable_recording(&dir.join("y.mcap"));
+    // A summary written to a reused fd 1 would have gone into the recording; it reads back
+    // whole, with as many messages as the first run (same seed, lockstep).
+    assert_eq!(n, assert_readable_recording(&dir.join("x.mcap")));
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+/// `rollbase` with a file-size limit (`ulimit -f`): a write past `bytes` fails (EFBIG), as
+/// on a full disk.
+fn rollbase_fsize_limited(bytes: u64) -> Command {
+    use std::os::unix::process::CommandExt;
+    let mut c = rollbase();
+    // SAFETY: setrlimit is async-signal-safe and only affects the child.
+    unsafe {
+        c.pre_exec(move || {
+            let lim = libc::rlimit {
+                rlim_cur: bytes as libc::rlim_t,
+                rlim_max: bytes as libc::rlim_t,
+            };
+            if libc::setrlimit(libc::RLIMIT_FSIZE, &lim) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    c
+}
+
+#[test]
+fn a_full_disk_stops_the_run_reports_the_cause_and_keeps_the_data_for_recover() {
+    let _serial = serial();
+    let dir = scratch("full");
+    let old = known_bytes();
+    std::fs::write(dir.join("x.mcap"), &old).unwrap();
+    // 768 KiB: the recording (256 KiB chunks, ~2.8 kB per cycle) fails after ~1 s of run.
+    let limit = 768 * 1024;
+    let out = output_within(
+        {
+            let mut c = rollbase_fsize_limited(limit);
+            c.current_dir(&dir)
+                .args(["demo", "--lockstep", "--json", "--record", "x.mcap"]);
+            c
+        },
+        Duration::from_secs(60),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    // Exit 4: the recording failed; not killed by SIGXFSZ.
+    assert_eq!(out.status.code(), Some(4), "{:?}\n{stderr}", out.status);
+    assert!(
+        stderr.contains("recording x.mcap failed during the run")
+            && stderr.contains("File too large"),
+        "the cause must be named:\n{stderr}"
+    );
+    // The summary is still printed: a controlled stop long before the 27.6 s trajectory's end.
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("one JSON summary");
+    assert_eq!(v["supervisor_final_state"], "stopped", "{v}");
+    let cycles = v["cycles"].as_u64().unwrap();
+    assert!(cycles > 0 && (cycles as f64) < 27.6 * 250.0, "{v}");
+    // Nothing pretends to be a finished recording: the earlier x.mcap is untouched, and the
+    // data written up to the failure is in the temporary file the error names, without
+    // summary or footer.
+    assert!(std::fs::read(dir.join("x.mcap")).unwrap() == old);
+    let kept = partials(&dir);
+    assert_eq!(kept.len(), 1, "{kept:?}");
+    let kept = &kept[0];
+    let kept_name = kept.file_name().unwrap().to_string_lossy().into_owned();
+    assert!(kept_name.starts_with(".x.mcap.partial-"), "{kept_name}");
+    assert!(
+        stderr.contains(&kept_name) && stderr.contains("rollbase recover"),
+        "{stderr}"
+    );
+    let bytes = std::fs::read(kept).unwrap();
+    assert!(bytes.len() as u64 <= limit && bytes.len() > 256 * 1024);
+    assert!(mcap::read::footer(&bytes).is_err() || !bytes.ends_with(mcap::MAGIC));
+    // What the error says to do works.
+    let out = rollbase()
+        .current_dir(&dir)
+        .arg("recover")
+        .arg(kept)
+        .args(["--out", "x.recovered.mcap"])
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_readable_recording(&dir.join("x.recovered.mcap"));
+
+    // The candump log alone: same rules.
+    let out = output_within(
+        {
+            let mut c = rollbase_fsize_limited(64 * 1024);
+            c.current_dir(&dir)
+                .args(["demo", "--lockstep", "--json", "--candump", "x.log"]);
+            c
+        },
+        Duration::from_secs(60),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(4), "{stderr}");
+    assert!(stderr.contains("File too large"), "{stderr}");
+    assert!(serde_json::from_slice::<serde_json::Value>(&out.stdout).is_ok());
+    assert!(!dir.join("x.log").exists());
+    let log = partials(&dir)
+        .into_iter()
+        .find(|p| p.to_string_lossy().contains(".x.log.partial-"))
+        .expect("the log up to the failure is kept");
+    assert!(stderr.contains(&*log.file_name().unwrap().to_string_lossy()));
+    let text = String::from_utf8(std::fs::read(&log).unwrap()).unwrap();
+    assert!(
+        text.starts_with('(') && text.lines().count() > 100,
+        "{text}"
+    );
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn an_output_under_a_regular_file_is_refused_with_a_clear_message() {
+    let _serial = serial();
+    let dir = scratch("underfile");
+    std::fs::write(dir.join("file"), b"not a directory").unwrap();
+    for (opt, path) in [
+        ("--record", "file/x.mcap"),
+        ("--candump", "file/sub/x.log"),
+        ("--plots", "file/p"),
+    ] {
+        let out = rollbase()
+            .current_dir(&dir)
+            .args(["demo", "--lockstep", opt, path])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{opt} {path}: {err}");
+        assert!(
+            err.contains(&format!("{opt} {path}"))
+                && err.contains("file is a file, not a directory"),
+            "{opt} {path}: {err}"
+        );
+        assert!(!err.contains("File exists"), "{err}");
+    }
+    assert_eq!(std::fs::read(dir.join("file")).unwrap(), b"not a directory");
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn a_fifo_given_as_an_output_is_written_or_refused_never_replaced() {
+    use std::io::BufRead;
+    use std::os::unix::fs::FileTypeExt;
+    let _serial = serial();
+    let dir = scratch("fifo");
+    let fifo = dir.join("pipe");
+    let c = std::ffi::CString::new(fifo.display().to_string()).unwrap();
+    // SAFETY: mkfifo with a valid NUL-terminated path.
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+    // A recording needs a regular file: refused up front (before the FIFO is opened).
+    let out = output_within(
+        {
+            let mut c = rollbase();
+            c.current_dir(&dir)
+                .args(["demo", "--lockstep", "--record", "pipe"]);
+            c
+        },
+        Duration::from_secs(20),
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--record pipe: not a regular file"), "{err}");
+    // A candump log is written into it (like `--candump /dev/stdout`), not renamed over it.
+    let path = fifo.clone();
+    let reader = std::thread::spawn(move || {
+        let f = std::fs::File::open(path).unwrap();
+        std::io::BufReader::new(f)
+            .lines()
+            .map_while(Result::ok)
+            .filter(|l| l.starts_with('(') && l.contains(" vcan0 "))
+            .count()
+    });
+    let out = output_within(
+        {
+            let mut c = rollbase();
+            c.current_dir(&dir)
+                .args(["demo", "--lockstep", "--json", "--candump", "pipe"]);
+            c
+        },
+        Duration::from_secs(60),
+    );
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let frames = reader.join().unwrap();
+    assert!(frames > 1000, "{frames} candump lines through the FIFO");
+    let ft = std::fs::symlink_metadata(&fifo).unwrap().file_type();
+    assert!(ft.is_fifo(), "the FIFO was replaced: {ft:?}");
+    assert!(partials(&dir).is_empty());
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn bad_durations_are_refused_before_the_bus_is_opened() {
+    let _serial = serial();
+    // The bus: a socketcand URL on a local listener that records whether anyone connected.
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    listener.set_nonblocking(true).unwrap();
+    let url = format!(
+        "socketcand://127.0.0.1:{}/vcan0",
+        listener.local_addr().unwrap().port()
+    );
+    for d in ["1e300", "nan", "-5", "inf", "0"] {
+        let out = output_within(
+            {
+                let mut c = rollbase();
+                c.args(["run", "--bus", &url, "--trajectory", "scenario:seed000"])
+                    .arg(format!("--duration={d}"));
+                c
+            },
+            Duration::from_secs(20),
+        );
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "--duration {d}: {err}");
+        assert!(
+            err.contains("--duration")
+                && err.contains("must be a number of seconds in (0, 1000000]"),
+            "--duration {d}: {err}"
+        );
+        assert!(!err.contains("panicked"), "{err}");
+        match listener.accept() {
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
+            other => panic!("--duration {d}: the bus was opened: {other:?}"),
+        }
+    }
+    // The listener does see a run that gets as far as opening its bus.
+    let mut child = rollbase()
+        .args(["run", "--bus", &url, "--trajectory", "scenario:seed000"])
+        .arg("--duration=1")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let until = Instant::now() + Duration::from_secs(20);
+    let connected = loop {
+        match listener.accept() {
+            Ok(_) => break true,
+            Err(_) if Instant::now() < until => std::thread::sleep(Duration::from_millis(20)),
+            Err(_) => break false,
+        }
+    };
+    let _ = child.kill();
+    let _ = child.wait();
+    assert!(
+        connected,
+        "a valid run never connected: the check above proves nothing"
+    );
+}
+
+#[test]
+fn a_recording_left_by_kill_9_is_recovered_with_index_and_summary() {
+    let _serial = serial();
+    let dir = scratch("kill9");
+    let mut child = rollbase()
+        .current_dir(&dir)
+        .args(["demo", "--json", "--record", "x.mcap"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("start rollbase demo");
+    // Wait until more than two 256 KiB chunks are on disk (about 1 s of a real-time run).
+    let until = Instant::now() + Duration::from_secs(30);
+    let partial = loop {
+        let p = partials(&dir).into_iter().next();
+        if let Some(p) = p.filter(|p| std::fs::metadata(p).is_ok_and(|m| m.len() > 600_000)) {
+            break p;
+        }
+        if Instant::now() > until {
+            let _ = child.kill();
+            panic!("no growing recording after 30 s: {:?}", partials(&dir));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    child.kill().unwrap(); // SIGKILL
+    let status = child.wait().unwrap();
+    assert_eq!(
+        std::os::unix::process::ExitStatusExt::signal(&status),
+        Some(libc::SIGKILL)
+    );
+    // The target was never written; the temporary file has no footer.
+    assert!(!dir.join("x.mcap").exists());
+    let bytes = std::fs::read(&partial).unwrap();
+    assert!(!bytes.ends_with(mcap::MAGIC) || mcap::read::footer(&bytes).is_err());
+    assert!(matches!(mcap::Summary::read(&bytes), Ok(None) | Err(_)));
+    let out = rollbase()
+        .current_dir(&dir)
+        .arg("recover")
+        .arg(&partial)
+        .args(["--out", "x.mcap"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{err}");
+    assert!(err.contains("recovered "), "{err}");
+    let n = assert_readable_recording(&dir.join("x.mcap"));
+    assert!(n > 1000, "{n} messages recovered");
+    // The input is never modified.
+    assert_eq!(std::fs::read(&partial).unwrap(), bytes);
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn endless_inputs_to_plot_recover_and_commands_are_refused() {
+    let _serial = serial();
+    let dir = scratch("endless");
+    let cases: [(&[&str], &str); 3] = [
+        (
+            &["plot", "/dev/zero", "--out", "plots"],
+            "not a regular file",
+        ),
+        (
+            &["recover", "/dev/zero", "--out", "r.mcap"],
+            "not a regular file",
+        ),
+        (
+            &["demo", "--lockstep", "--commands", "/dev/zero"],
+            "longer than the 4096 bytes a line may have",
+        ),
+    ];
+    for (args, says) in cases {
+        let mut c = rollbase_limited();
+        c.current_dir(&dir).args(args);
+        let out = output_within(c, Duration::from_secs(20));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(
+            err.contains("/dev/zero") && err.contains(says),
+            "{args:?}: {err}"
+        );
+    }
+    assert!(!dir.join("r.mcap").exists());
+    let _ = std::fs::remove_dir_all(dir);
+}

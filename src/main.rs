@@ -48,6 +48,10 @@ fn main() {
     // SAFETY: setting a signal disposition at start-up, before any thread exists.
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_IGN);
+        // Likewise a file-size limit (`ulimit -f`): a write past it fails with EFBIG ("File
+        // too large"), a recording failure the run reports and stops on, instead of SIGXFSZ
+        // killing the process with its recording unfinished.
+        libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
     }
     init_logging();
     let cli = app::Cli::parse();

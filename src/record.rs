@@ -568,6 +568,20 @@ impl McapRecorder {
         Ok(())
     }
 
+    /// Stops writing without finishing the file: no summary, no index, no footer are written
+    /// (after a failed write the writer's state is not trustworthy: finishing could put an
+    /// index and a valid-looking footer after a cut record). What reached the file stays, as
+    /// after a killed writer, for [`recover`]. Returns the file's length in bytes (0 when it
+    /// cannot be read).
+    pub fn abandon(self) -> u64 {
+        // `into_inner` unwraps the writer without writing anything (it also marks it
+        // finished, so nothing is written when it is dropped).
+        let mut inner = self.writer.into_inner();
+        // What the buffer still holds is the continuation of the data: keep it if it fits.
+        let _ = inner.flush();
+        inner.get_ref().metadata().map(|m| m.len()).unwrap_or(0)
+    }
+
     /// Finishes the file (summary, index) and returns the message counts per topic.
     pub fn finish(mut self) -> Result<RecordSummary, RecordError> {
         self.writer
@@ -1125,6 +1139,29 @@ mod tests {
         std::fs::write(&path, &bytes).unwrap();
         let e = read_recording(&path).unwrap_err().to_string();
         assert!(e.contains("chunk CRC mismatch"), "{e}");
+    }
+
+    #[test]
+    fn an_abandoned_recording_has_no_footer_and_recover_reads_its_chunks() {
+        let dir = tmp("abandon");
+        let path = dir.join("run.mcap");
+        let mut rec = McapRecorder::create(&path, &BTreeMap::new()).unwrap();
+        for k in 0..1000u64 {
+            rec.write_cycle(&cycle(k), &[[0.3, 0.2]; 4]).unwrap();
+        }
+        let len = rec.abandon();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(len, bytes.len() as u64);
+        assert!(len > CHUNK_SIZE, "{len} bytes: more than one chunk written");
+        // Nothing finished it: no summary, no footer (not even when dropped).
+        assert!(!bytes.ends_with(mcap::MAGIC) || mcap::read::footer(&bytes).is_err());
+        assert!(read_recording(&path).is_err());
+        let fixed = dir.join("fixed.mcap");
+        let rep = recover(&path, &fixed).unwrap();
+        assert!(!rep.had_footer);
+        assert!(rep.total() > 0);
+        assert_eq!(read_recording(&fixed).unwrap().len() as u64, rep.total());
+        let _ = std::fs::remove_dir_all(dir);
     }
 
     #[test]

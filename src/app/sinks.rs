@@ -2,14 +2,23 @@
 //!
 //! Recordings are never lost or overwritten by a run that fails:
 //! - every path is checked before anything starts (the same file given twice, a path under a
-//!   regular file, a directory that cannot be made), and nothing is created before the run's
-//!   inputs are validated and its bus is open ([`OutputPlan::check`], called by each command);
+//!   regular file, a directory, a device or FIFO given to `--record`), and nothing is created
+//!   before the run's inputs are validated and its bus is open ([`OutputPlan::check`], called
+//!   by each command);
 //! - the MCAP and the candump log are written under a temporary name next to the target
 //!   (`.NAME.partial-PID`) and renamed onto it only when finished, so an earlier file of the
-//!   same name stays until a new one is complete;
-//! - a write error (a full disk) stops the run in a controlled way ([`Sinks::failed`] tells
-//!   the caller; the cycle keeps its own rhythm, the summary is still printed) and its cause
-//!   is reported; what was recorded up to then is finished and kept under the target name.
+//!   same name stays until a new one is complete (a candump log given as an existing device,
+//!   FIFO or socket, e.g. `/dev/stdout`, is written to it directly: there is no earlier
+//!   recording to protect, and a rename would replace the device node);
+//! - a write error (a full disk, a file-size limit) stops the run in a controlled way
+//!   ([`Sinks::failed`] tells the caller; the cycle keeps its own rhythm, the summary is still
+//!   printed) and its cause is reported. The output that failed is *not* finished and *not*
+//!   renamed: its target name is left as it was (absent, or the earlier file), and what was
+//!   written up to the failure stays in the temporary file, which the error names with the
+//!   `rollbase recover` command that salvages it (an MCAP written after a failed write could
+//!   hold a cut record under a valid-looking index). An output that did not fail is finished
+//!   and renamed as usual; it ends where the recording stopped. The same holds when finishing
+//!   itself fails (the disk fills while the index is written): the temporary file is kept.
 
 use rollbase::record::{McapRecorder, RecordOptions};
 use rollbase_control::record::CycleRecord;
@@ -34,6 +43,9 @@ pub(crate) struct OutputPlan {
     /// Topic names, frames and rates of the ROS 2 topics in the recording (those of the
     /// node, with `--ros2`; the defaults otherwise).
     pub(crate) ros2: rollbase::ros2::Ros2Options,
+    /// The option that named the recording, for messages (`--record`, or `--plots` when the
+    /// recording is implied by it).
+    pub(crate) record_option: &'static str,
 }
 
 impl OutputPlan {
@@ -50,35 +62,47 @@ impl OutputPlan {
             candump: common.candump.clone(),
             plots: common.plots.clone(),
             ros2: Default::default(),
+            record_option: if common.record.is_none() && common.plots.is_some() {
+                "--plots"
+            } else {
+                "--record"
+            },
+        }
+    }
+
+    fn record_option(&self) -> &'static str {
+        if self.record_option.is_empty() {
+            "--record"
+        } else {
+            self.record_option
         }
     }
 
     /// Refuses what cannot work, before anything is created: the same file for two outputs,
-    /// a path whose directory part is a regular file, an output that is a directory.
+    /// a path whose directory part is a regular file, an output that is a directory, a
+    /// recording that is not a regular file (a device, FIFO or socket).
     pub(crate) fn check(&self) -> Result<(), CliError> {
-        let outs: Vec<(&str, &PathBuf)> = [
-            ("--record", self.record.as_ref()),
-            ("--candump", self.candump.as_ref()),
-        ]
-        .into_iter()
-        .filter_map(|(k, p)| p.map(|p| (k, p)))
-        .collect();
-        for (k, p) in &outs {
-            check_output_path(k, p)?;
-        }
-        if let (Some(a), Some(b)) = (&self.record, &self.candump) {
-            if same_file(a, b) {
-                return Err(CliError::Usage(format!(
-                    "--record and --candump both name {}: give two different files",
-                    a.display()
-                )));
-            }
-        }
         if let Some(d) = &self.plots {
             if d.exists() && !d.is_dir() {
                 return Err(CliError::Usage(format!(
                     "--plots {}: not a directory",
                     d.display()
+                )));
+            }
+            check_ancestors("--plots", d)?;
+        }
+        if let Some(p) = &self.record {
+            check_output_path(self.record_option(), p, false)?;
+        }
+        if let Some(p) = &self.candump {
+            check_output_path("--candump", p, true)?;
+        }
+        if let (Some(a), Some(b)) = (&self.record, &self.candump) {
+            if same_file(a, b) {
+                return Err(CliError::Usage(format!(
+                    "{} and --candump both name {}: give two different files",
+                    self.record_option(),
+                    a.display()
                 )));
             }
         }
@@ -100,18 +124,25 @@ fn absolute(p: &Path) -> PathBuf {
 }
 
 fn same_file(a: &Path, b: &Path) -> bool {
-    absolute(a) == absolute(b)
+    if absolute(a) == absolute(b) {
+        return true;
+    }
+    // Two names of one existing file (a symbolic or hard link).
+    use std::os::unix::fs::MetadataExt;
+    match (std::fs::metadata(a), std::fs::metadata(b)) {
+        (Ok(x), Ok(y)) => x.dev() == y.dev() && x.ino() == y.ino(),
+        _ => false,
+    }
 }
 
-/// An output file's path must be creatable: no regular file among its directories, and not a
-/// directory itself.
-fn check_output_path(option: &str, p: &Path) -> Result<(), CliError> {
-    if p.is_dir() {
-        return Err(CliError::Usage(format!(
-            "{option} {}: is a directory; give a file name",
-            p.display()
-        )));
-    }
+/// True when `p` exists and is not a regular file or a directory (a device such as
+/// `/dev/null` or `/dev/stdout`, a FIFO, a socket), following symbolic links.
+fn is_special(p: &Path) -> bool {
+    std::fs::metadata(p).is_ok_and(|m| !m.is_file() && !m.is_dir())
+}
+
+/// No regular file among the directories of `p` (which are created when missing).
+fn check_ancestors(option: &str, p: &Path) -> Result<(), CliError> {
     let mut dir = p.parent();
     while let Some(d) = dir {
         if d.as_os_str().is_empty() {
@@ -120,7 +151,7 @@ fn check_output_path(option: &str, p: &Path) -> Result<(), CliError> {
         if d.exists() {
             if !d.is_dir() {
                 return Err(CliError::Usage(format!(
-                    "{option} {}: {} is a file, not a directory",
+                    "{option} {}: {} is a file, not a directory; give a path under a directory",
                     p.display(),
                     d.display()
                 )));
@@ -132,13 +163,64 @@ fn check_output_path(option: &str, p: &Path) -> Result<(), CliError> {
     Ok(())
 }
 
-/// The temporary name a file is written under until it is complete.
-fn partial_path(p: &Path) -> PathBuf {
+/// An output file's path must be creatable: no regular file among its directories, and not a
+/// directory itself. A device, FIFO or socket is refused unless `special_ok` (then it is
+/// written directly, see [`Sinks::new`]).
+fn check_output_path(option: &str, p: &Path, special_ok: bool) -> Result<(), CliError> {
+    if p.is_dir() {
+        return Err(CliError::Usage(format!(
+            "{option} {}: is a directory; give a file name",
+            p.display()
+        )));
+    }
+    if !special_ok && is_special(p) {
+        return Err(CliError::Usage(format!(
+            "{option} {}: not a regular file (a device, FIFO or socket); an MCAP recording needs a regular file: give a file path, or leave the option out to record nothing",
+            p.display()
+        )));
+    }
+    check_ancestors(option, p)
+}
+
+/// Reserves the temporary name a file is written under until it is complete:
+/// `.NAME.partial-PID` next to the target, created empty here so that a leftover of an
+/// earlier run (a killed one whose process id was the same, as in a container) is never
+/// truncated: then `-2`, `-3`, … is appended.
+fn reserve_partial(option: &str, p: &Path) -> Result<PathBuf, CliError> {
     let name = p
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "output".into());
-    p.with_file_name(format!(".{name}.partial-{}", std::process::id()))
+    let base = format!(".{name}.partial-{}", std::process::id());
+    let mut last = None;
+    for k in 1..=100u32 {
+        let tmp = p.with_file_name(if k == 1 {
+            base.clone()
+        } else {
+            format!("{base}-{k}")
+        });
+        match std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&tmp)
+        {
+            Ok(_) => return Ok(tmp),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => last = Some(e),
+            Err(e) => {
+                return Err(CliError::File {
+                    path: tmp.display().to_string(),
+                    message: format!("{option}: cannot create the temporary file: {e}"),
+                })
+            }
+        }
+    }
+    Err(CliError::File {
+        path: p.with_file_name(base).display().to_string(),
+        message: format!(
+            "{option}: 100 temporary files of this name exist already ({}); move them away",
+            last.map(|e| e.to_string()).unwrap_or_default()
+        ),
+    })
 }
 
 fn make_parent(p: &Path) -> Result<(), CliError> {
@@ -153,25 +235,36 @@ fn make_parent(p: &Path) -> Result<(), CliError> {
     Ok(())
 }
 
+/// An output being written: under `tmp`, renamed onto `target` when finished (`tmp ==
+/// target`: a candump log written directly to a device or FIFO).
+struct Out<W> {
+    w: W,
+    tmp: PathBuf,
+    target: PathBuf,
+}
+
+/// Which output failed during the run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Failed {
+    Mcap,
+    Candump,
+}
+
 /// Where the records go: summary, MCAP, candump.
 pub(crate) struct Sinks {
     pub(crate) summary: RunSummary,
-    mcap: Option<(McapRecorder, PathBuf, PathBuf)>,
-    candump: Option<(
-        CandumpWriter<std::io::BufWriter<std::fs::File>>,
-        PathBuf,
-        PathBuf,
-    )>,
+    mcap: Option<Out<McapRecorder>>,
+    candump: Option<Out<CandumpWriter<std::io::BufWriter<std::fs::File>>>>,
     plan: OutputPlan,
     iface: String,
     pub(crate) time_origin: f64,
-    error: Option<CliError>,
+    error: Option<(Failed, CliError)>,
     /// The recorder's warning about the state was logged.
     state_warned: bool,
 }
 
 impl Sinks {
-    /// Opens the outputs of `plan` (already checked) under their temporary names.
+    /// Opens the outputs of `plan` (checked again here) under their temporary names.
     pub(crate) fn new(
         scenario: &str,
         plan: &OutputPlan,
@@ -183,7 +276,7 @@ impl Sinks {
         let mcap = match &plan.record {
             Some(p) => {
                 make_parent(p)?;
-                let tmp = partial_path(p);
+                let tmp = reserve_partial(plan.record_option(), p)?;
                 let rec = McapRecorder::create_with(
                     &tmp,
                     &meta,
@@ -191,24 +284,51 @@ impl Sinks {
                         can_interface: iface.to_string(),
                         ros2: plan.ros2.clone(),
                     },
-                )?;
-                Some((rec, tmp, p.clone()))
+                );
+                match rec {
+                    Ok(w) => Some(Out {
+                        w,
+                        tmp,
+                        target: p.clone(),
+                    }),
+                    Err(e) => {
+                        // Nothing was recorded yet: leave nothing behind.
+                        let _ = std::fs::remove_file(&tmp);
+                        return Err(CliError::File {
+                            path: p.display().to_string(),
+                            message: format!(
+                                "cannot start the recording (temporary file {}): {}",
+                                tmp.display(),
+                                root_cause(&e)
+                            ),
+                        });
+                    }
+                }
             }
             None => None,
         };
         let candump = match &plan.candump {
             Some(p) => {
-                make_parent(p)?;
-                let tmp = partial_path(p);
-                let f = std::fs::File::create(&tmp).map_err(|e| CliError::File {
+                // A device, FIFO or socket (`/dev/stdout`, a pipe to another tool) is written
+                // directly: a temporary file renamed onto it would replace the node.
+                let (tmp, f) = if is_special(p) {
+                    let f = std::fs::OpenOptions::new().write(true).open(p);
+                    (p.clone(), f)
+                } else {
+                    make_parent(p)?;
+                    let tmp = reserve_partial("--candump", p)?;
+                    let f = std::fs::File::create(&tmp);
+                    (tmp, f)
+                };
+                let f = f.map_err(|e| CliError::File {
                     path: p.display().to_string(),
                     message: format!("cannot create candump log: {e}"),
                 })?;
-                Some((
-                    CandumpWriter::new(std::io::BufWriter::new(f)),
+                Some(Out {
+                    w: CandumpWriter::new(std::io::BufWriter::new(f)),
                     tmp,
-                    p.clone(),
-                ))
+                    target: p.clone(),
+                })
             }
             None => None,
         };
@@ -231,7 +351,7 @@ impl Sinks {
 
     /// The write error, if any (for the operator while the run stops).
     pub(crate) fn error(&self) -> Option<&CliError> {
-        self.error.as_ref()
+        self.error.as_ref().map(|(_, e)| e)
     }
 
     pub(crate) fn take(&mut self, r: &CycleRecord, wheel_xy: &[[f64; 2]]) {
@@ -239,12 +359,13 @@ impl Sinks {
         if self.error.is_some() {
             return;
         }
-        if let Some((m, _, target)) = &mut self.mcap {
+        if let Some(o) = &mut self.mcap {
             // The cycle, then the ROS 2 topics: the state (decimated to the node's rates by
             // the recorder) and the commands the cycle took.
             let mut st = r.base;
             st.log_time_ns = r.log_time_ns;
             st.t = r.t;
+            let m = &mut o.w;
             let written = m.write_cycle(r, wheel_xy).and_then(|()| {
                 if let Some(w) = m.write_state(&st)? {
                     if !self.state_warned {
@@ -258,14 +379,17 @@ impl Sinks {
                 Ok(())
             });
             if let Err(e) = written {
-                self.error = Some(CliError::Recording {
-                    path: target.display().to_string(),
-                    source: Box::new(e.into()),
-                });
+                self.error = Some((
+                    Failed::Mcap,
+                    CliError::Recording {
+                        path: o.target.display().to_string(),
+                        source: Box::new(e.into()),
+                    },
+                ));
                 return;
             }
         }
-        if let Some((w, _, target)) = &mut self.candump {
+        if let Some(o) = &mut self.candump {
             // Frames in bus order: SYNC first, then what was received, then the setpoints.
             let mut frames: Vec<(f64, &rollbase_control::record::FrameRecord)> =
                 Vec::with_capacity(r.n_rx + r.n_tx);
@@ -281,67 +405,119 @@ impl Sinks {
                     interface: self.iface.clone(),
                     frame,
                 };
-                if let Err(e) = w.write(&entry) {
-                    self.error = Some(CliError::Recording {
-                        path: target.display().to_string(),
-                        source: Box::new(CliError::File {
-                            path: target.display().to_string(),
-                            message: e.to_string(),
-                        }),
-                    });
+                if let Err(e) = o.w.write(&entry) {
+                    self.error = Some((
+                        Failed::Candump,
+                        CliError::Recording {
+                            path: o.target.display().to_string(),
+                            source: Box::new(CliError::File {
+                                path: o.tmp.display().to_string(),
+                                message: e.to_string(),
+                            }),
+                        },
+                    ));
                     return;
                 }
             }
         }
     }
 
-    /// Closes the outputs (renaming each onto its target) and makes the plots; returns the
-    /// summary, the messages per recorded topic, and the error that stopped the recording
-    /// (the files written up to it are finished and kept).
+    /// Closes the outputs (renaming each finished one onto its target) and makes the plots;
+    /// returns the summary, the messages per recorded topic, and the error that stopped the
+    /// recording. An output that failed is neither finished nor renamed: its temporary file
+    /// is kept and named in the error, with how to salvage it (module docs).
     pub(crate) fn finish(
         mut self,
         quiet: bool,
     ) -> (RunSummary, Option<BTreeMap<String, u64>>, Option<CliError>) {
-        let mut err = self.error.take();
-        if let Some((mut w, tmp, target)) = self.candump.take() {
-            let r = w
-                .flush()
-                .map_err(|e| CliError::File {
-                    path: target.display().to_string(),
-                    message: e.to_string(),
-                })
-                .and_then(|()| rename(&tmp, &target));
-            if let Err(e) = r {
-                err.get_or_insert(e);
+        let (failed, mut err) = match self.error.take() {
+            Some((f, e)) => (Some(f), Some(e)),
+            None => (None, None),
+        };
+        if let Some(Out { mut w, tmp, target }) = self.candump.take() {
+            if failed == Some(Failed::Candump) {
+                let _ = w.flush();
+                if tmp == target {
+                    // Written directly (a device or FIFO): nothing kept elsewhere.
+                } else {
+                    err = with_kept(
+                        err.take(),
+                        &tmp,
+                        &target,
+                        "the log up to the failure is kept in it (its last line may be cut); rename it to use it",
+                    );
+                }
+            } else {
+                match w.flush() {
+                    Ok(()) if tmp == target => {}
+                    Ok(()) => {
+                        if let Err(e) = rename(&tmp, &target) {
+                            report(&mut err, e);
+                        }
+                    }
+                    Err(e) => report(
+                        &mut err,
+                        CliError::File {
+                            path: target.display().to_string(),
+                            message: if tmp == target {
+                                format!("the candump log could not be finished: {e}")
+                            } else {
+                                format!(
+                                    "the candump log could not be finished ({e}): not written; the log up to the failure is kept in {} (its last line may be cut)",
+                                    tmp.display()
+                                )
+                            },
+                        },
+                    ),
+                }
             }
         }
         let mut recorded = None;
-        if let Some((m, tmp, target)) = self.mcap.take() {
-            match m.finish() {
-                Ok(s) => {
-                    let total: u64 = s.messages.values().sum();
-                    match rename(&tmp, &target) {
-                        Ok(()) => {
-                            if !quiet {
-                                errln!(
-                                    "recorded {total} messages on {} topics to {}",
-                                    s.messages.len(),
-                                    target.display()
-                                );
+        if let Some(o) = self.mcap.take() {
+            let Out { w, tmp, target } = o;
+            if failed == Some(Failed::Mcap) {
+                let bytes = w.abandon();
+                err = with_kept(
+                    err.take(),
+                    &tmp,
+                    &target,
+                    &format!(
+                        "the {bytes} bytes written up to the failure are kept in it, without index or summary; {}",
+                        recover_hint(&tmp, &target)
+                    ),
+                );
+            } else {
+                match w.finish() {
+                    Ok(s) => {
+                        let total: u64 = s.messages.values().sum();
+                        match rename(&tmp, &target) {
+                            Ok(()) => {
+                                if !quiet {
+                                    errln!(
+                                        "recorded {total} messages on {} topics to {}",
+                                        s.messages.len(),
+                                        target.display()
+                                    );
+                                }
+                                recorded = Some(s.messages);
                             }
-                            recorded = Some(s.messages);
-                        }
-                        Err(e) => {
-                            err.get_or_insert(e);
+                            Err(e) => report(&mut err, e),
                         }
                     }
-                }
-                Err(e) => {
-                    let _ = std::fs::remove_file(&tmp);
-                    err.get_or_insert(CliError::Recording {
-                        path: target.display().to_string(),
-                        source: Box::new(e.into()),
-                    });
+                    Err(e) => {
+                        // Finishing failed (the disk filled while the index was written):
+                        // the data written so far stays for `recover`.
+                        let bytes = std::fs::metadata(&tmp).map(|m| m.len()).unwrap_or(0);
+                        report(&mut err, CliError::File {
+                            path: target.display().to_string(),
+                            message: format!(
+                                "the recording could not be finished ({}): not written; the {bytes} bytes recorded are kept in {}, without index or summary; {}",
+                                root_cause(&e),
+                                tmp.display(),
+                                recover_hint(&tmp, &target)
+                            ),
+                        });
+                    }
                 }
             }
         }
@@ -364,6 +540,74 @@ impl Sinks {
         }
         (self.summary, recorded, err)
     }
+}
+
+/// Keeps the first error of a run's outputs for its exit code and its last lines; a further
+/// one (a second output that failed too) is printed at once, so that no kept file goes
+/// unmentioned.
+fn report(err: &mut Option<CliError>, e: CliError) {
+    if err.is_none() {
+        *err = Some(e);
+    } else {
+        errln!("error: {e}");
+    }
+}
+
+/// The innermost cause of an error (the OS error of an I/O failure, e.g. "No space left on
+/// device (os error 28)").
+fn root_cause(e: &dyn std::error::Error) -> String {
+    let mut e = e;
+    while let Some(s) = e.source() {
+        e = s;
+    }
+    e.to_string()
+}
+
+/// The recording error of a failed output, its cause completed with where the data was kept
+/// (any other error passes unchanged).
+fn with_kept(err: Option<CliError>, tmp: &Path, target: &Path, what: &str) -> Option<CliError> {
+    match err {
+        Some(CliError::Recording { path, source }) => Some(CliError::Recording {
+            path,
+            source: Box::new(kept(&source, tmp, target, what)),
+        }),
+        other => other,
+    }
+}
+
+/// The cause of a failed output, with where its data was kept and what to do.
+fn kept(cause: &CliError, tmp: &Path, target: &Path, what: &str) -> CliError {
+    CliError::File {
+        path: tmp.display().to_string(),
+        message: format!(
+            "{}; {what} ({} was not written{})",
+            root_cause(cause),
+            target.display(),
+            if target.exists() {
+                ": the earlier file of that name is unchanged"
+            } else {
+                ""
+            }
+        ),
+    }
+}
+
+/// How to salvage a recording kept under `tmp` (an unused output name near `target`).
+fn recover_hint(tmp: &Path, target: &Path) -> String {
+    let out = if target.exists() {
+        let stem = target
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "recording".into());
+        target.with_file_name(format!("{stem}.recovered.mcap"))
+    } else {
+        target.to_path_buf()
+    };
+    format!(
+        "once there is space, `rollbase recover {} --out {}` rewrites its complete chunks with an index",
+        tmp.display(),
+        out.display()
+    )
 }
 
 fn rename(tmp: &Path, target: &Path) -> Result<(), CliError> {
@@ -489,6 +733,40 @@ pub(crate) fn print_summary(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_leftover_temporary_file_is_never_reused_or_truncated() {
+        let dir = std::env::temp_dir().join(format!("rollbase-sinks-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let target = dir.join("run.mcap");
+        // What a killed run with the same process id left (a container restarted).
+        let leftover = dir.join(format!(".run.mcap.partial-{}", std::process::id()));
+        std::fs::write(&leftover, b"earlier data").unwrap();
+        let tmp = reserve_partial("--record", &target).unwrap();
+        assert_ne!(tmp, leftover);
+        assert!(tmp.to_string_lossy().ends_with("-2"), "{}", tmp.display());
+        assert_eq!(std::fs::read(&leftover).unwrap(), b"earlier data");
+        assert_eq!(std::fs::read(&tmp).unwrap(), b"");
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
+    #[test]
+    fn devices_are_refused_as_recordings_and_written_directly_as_candump_logs() {
+        let plan = OutputPlan {
+            record: Some("/dev/null".into()),
+            ..Default::default()
+        };
+        let e = plan.check().unwrap_err().to_string();
+        assert!(e.contains("--record /dev/null: not a regular file"), "{e}");
+        let plan = OutputPlan {
+            candump: Some("/dev/null".into()),
+            ..Default::default()
+        };
+        plan.check().unwrap();
+        assert!(is_special(Path::new("/dev/null")));
+        assert!(!is_special(Path::new("/nonexistent/x.log")));
+    }
 
     #[test]
     fn a_run_fails_when_it_did_not_stop_or_the_truth_says_it_did_not_arrive() {
