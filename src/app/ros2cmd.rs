@@ -25,15 +25,27 @@ pub(crate) struct RecoverArgs {
     out: Option<PathBuf>,
 }
 
+/// Where `recover FILE` writes without `--out`: `run.mcap` → `run.recovered.mcap`, and the
+/// temporary file of an unfinished recording, `.run.mcap.partial-PID`, → `run.recovered.mcap`.
+fn default_recovered(file: &std::path::Path) -> PathBuf {
+    let name = file
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let target = match (name.strip_prefix('.'), name.rfind(".partial-")) {
+        (Some(_), Some(i)) if i > 1 => name[1..i].to_string(),
+        _ => name,
+    };
+    let stem = std::path::Path::new(&target)
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .filter(|s| !s.is_empty())
+        .unwrap_or_else(|| "recording".into());
+    file.with_file_name(format!("{stem}.recovered.mcap"))
+}
+
 pub(crate) fn recover(a: RecoverArgs) -> Result<i32, CliError> {
-    let out = a.out.clone().unwrap_or_else(|| {
-        let stem = a
-            .file
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "recording".into());
-        a.file.with_file_name(format!("{stem}.recovered.mcap"))
-    });
+    let out = a.out.clone().unwrap_or_else(|| default_recovered(&a.file));
     let rep = rollbase::record::recover(&a.file, &out)?;
     if rep.had_footer && rep.stopped.is_none() {
         errln!(
@@ -257,4 +269,19 @@ pub(crate) fn selftest(a: SelftestArgs) -> Result<i32, CliError> {
         json!({"done": true, "stats": counters, "recorded_messages": recorded})
     );
     Ok(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::default_recovered;
+    use std::path::Path;
+
+    #[test]
+    fn recovered_names_come_from_the_recording_not_its_temporary_name() {
+        let r = |p: &str| default_recovered(Path::new(p)).display().to_string();
+        assert_eq!(r("runs/run.mcap"), "runs/run.recovered.mcap");
+        assert_eq!(r("runs/.run.mcap.partial-4242"), "runs/run.recovered.mcap");
+        assert_eq!(r(".run.mcap.partial-4242-2"), "run.recovered.mcap");
+        assert_eq!(r("plain"), "plain.recovered.mcap");
+    }
 }
