@@ -312,6 +312,13 @@ class Peer:
         with self._cmd_lock:
             self._cmd = None
 
+    def send_twist(self, vx=0.0, vy=0.0, w=0.0):
+        """Writes one Twist on cmd_vel now (and keeps it in `sent_twists`)."""
+        m = rt.Twist(linear=rt.Vector3(x=vx, y=vy), angular=rt.Vector3(z=w))
+        with self._cmd_lock:
+            self.cmd_vel.write(m)
+            self.sent_twists.append(m)
+
     def send_legs(self, targets):
         m = rt.Float64MultiArray(data=list(targets))
         self.legs.write(m)
@@ -783,3 +790,146 @@ def test_sigterm_exits_0_with_the_summary(live):
     assert passed == len(peer.sent_twists) + len(peer.sent_legs) + 2, (passed, len(peer.sent_twists), len(peer.sent_legs))
     assert (dropped, refused, failed, calls) == (0, 0, 0, 2)
     assert published > 0
+
+
+# ---------------------------------------------------------------------------------------------
+# A recording of a `demo --ros2` run, read by two independent ROS 2 bag readers
+# ---------------------------------------------------------------------------------------------
+
+BAG_DOMAIN = 18
+ROS_TOPICS = {
+    "/odom": "nav_msgs/msg/Odometry",
+    "/tf": "tf2_msgs/msg/TFMessage",
+    "/joint_states": "sensor_msgs/msg/JointState",
+    "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+    "/supervisor_state": "std_msgs/msg/String",
+    "/cmd_vel": "geometry_msgs/msg/Twist",
+    "/leg_commands": "std_msgs/msg/Float64MultiArray",
+}
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory, plat):
+    """`demo --ros2 --record X --json` driven for a few seconds with cmd_vel (every message a
+    different twist) and two leg commands, left to time out, then SIGINT. Returns (exit code,
+    summary, bag path, Twists sent, leg commands sent, platform)."""
+    tmp = tmp_path_factory.mktemp("bag")
+    bag = tmp / "ros2.mcap"
+    demo = Demo(tmp, plat[0], BAG_DOMAIN, "--record", str(bag))
+    peer = None
+    try:
+        demo.wait_log(rf"ROS 2 node /rollbase on DDS domain {BAG_DOMAIN}\b")
+        demo.wait_log(r"state: tracking")
+        peer = Peer(BAG_DOMAIN)
+        legs = [w["lambda_nominal"] for w in plat[1]["wheels"]]
+        peer.send_legs([x + 0.01 for x in legs])
+        for k in range(60):  # 3 s at 20 Hz, a slowly turning command
+            a = 0.05 * k
+            peer.send_twist(0.15 + 0.05 * math.cos(a), 0.05 * math.sin(a), 0.1 + 0.001 * k)
+            time.sleep(1 / CMD_RATE_HZ)
+        peer.send_legs(legs)
+        settle_at_rest(peer)
+        rc, summary = demo.terminate(signal.SIGINT)
+        yield rc, summary, bag, list(peer.sent_twists), list(peer.sent_legs), plat[1]
+    finally:
+        if peer is not None:
+            peer.close()
+        demo.kill()
+
+
+def _twist_tuple(t):
+    return (t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z)
+
+
+def test_recording_run_ends_0_on_sigint_with_its_message_counts(recorded):
+    rc, summary, bag, sent, sent_legs, _ = recorded
+    assert rc == 0
+    assert summary is not None and "recorded_messages" in summary, summary
+    counts = summary["recorded_messages"]
+    for topic in ROS_TOPICS:
+        assert counts.get(topic, 0) > 0, (topic, counts)
+    assert counts["/cmd_vel"] == len(sent) and counts["/leg_commands"] == len(sent_legs), counts
+    # Finished and renamed onto its name (no `.NAME.partial-PID` left behind).
+    assert bag.exists() and not list(bag.parent.glob(".*partial*")), list(bag.parent.iterdir())
+
+
+def test_rosbags_reads_every_message_from_the_schema_text(recorded):
+    """rosbags builds its types only from the .msg text stored in the file (no typestore)."""
+    from rosbags.highlevel import AnyReader
+
+    _, summary, bag, sent, sent_legs, p = recorded
+    counts = Counter()
+    twists, legs, odoms, diags = [], [], [], []
+    with AnyReader([bag]) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        for topic, ty in ROS_TOPICS.items():
+            assert types.get(topic) == ty, (topic, types.get(topic))
+        for conn, ts, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            counts[conn.topic] += 1
+            if conn.topic == "/cmd_vel":
+                twists.append((ts, _twist_tuple(msg)))
+            elif conn.topic == "/leg_commands":
+                legs.append((ts, list(msg.data)))
+                assert [(d.label, d.size, d.stride) for d in msg.layout.dim] == [("legs", 4, 4)]
+            elif conn.topic == "/odom":
+                assert (msg.header.frame_id, msg.child_frame_id) == ("odom", "base_link")
+                assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == ts
+                odoms.append(msg)
+            elif conn.topic == "/tf":
+                assert [t.child_frame_id for t in msg.transforms] == ["base_link"]
+            elif conn.topic == "/joint_states":
+                assert len(msg.name) == len(msg.position) == len(msg.velocity) == 12
+            elif conn.topic == "/diagnostics":
+                diags.append((ts, msg))
+            elif conn.topic == "/supervisor_state":
+                assert msg.data.split()[0] in {"idle", "aligning", "tracking", "stopping", "stopped", "fault"}, msg.data
+    assert dict(counts) == summary["recorded_messages"]
+    # The velocity commands in the bag are those sent, in order, value for value (planar
+    # twists: rollbase records the components it takes, vx, vy and ω).
+    assert [t for _, t in twists] == [_twist_tuple(t) for t in sent]
+    assert [x for _, x in legs] == sent_legs
+    # Times on the cycle clock (log times in ns): the command timeout (platform [service]
+    # command_timeout) fires in the cycle after the last command (here the last leg command)
+    # is older than the timeout, so the diagnostics array that reports it is stamped within
+    # two cycles of last command + timeout; the odometry is at rest by the halt's stop time
+    # plus the drives' lag after that.
+    dt_ns = round(1e9 / p["cycle_hz"])
+    t_last = max(ts for ts, _ in twists + legs)
+    onset = next(ts for ts, m in diags if ts > t_last and any(
+        kv.key == "limiting" and kv.value == "command timeout" for s in m.status for kv in s.values))
+    timeout_ns = round(p["service"]["command_timeout"] * 1e9)
+    print(f"bag: last command → timeout onset {(onset - t_last) * 1e-9:.3f} s "
+          f"(timeout {timeout_ns * 1e-9} s, cycle {dt_ns * 1e-6:.0f} ms)")
+    assert timeout_ns <= onset - t_last <= timeout_ns + 2 * dt_ns, onset - t_last
+    onset *= 1e-9
+    last_cmd = sent[-1]
+    bound = onset + stop_time(p, (last_cmd.linear.x, last_cmd.linear.y, last_cmd.angular.z)) \
+        + LAG_TAUS * p["drives"]["wheel_time_constant"] + ODOM_PERIOD
+    late = [o for o in odoms if stamp(o) >= bound]
+    assert late and all(speed(o) < REST_TOL for o in late)
+
+
+def test_mcap_ros2_support_reads_every_message(recorded):
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    _, summary, bag, sent, sent_legs, _ = recorded
+    counts = Counter()
+    twists, legs = [], []
+    with open(bag, "rb") as f:
+        reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == "ros2"
+        for schema, channel, message, decoded in reader.iter_decoded_messages():
+            counts[channel.topic] += 1
+            if channel.topic in ROS_TOPICS:
+                assert (schema.name, schema.encoding, channel.message_encoding) == (ROS_TOPICS[channel.topic], "ros2msg", "cdr")
+            if channel.topic == "/cmd_vel":
+                twists.append(_twist_tuple(decoded))
+            elif channel.topic == "/leg_commands":
+                legs.append(list(decoded.data))
+            elif channel.topic == "/joint_states":
+                assert list(decoded.name)[:3] == ["wheel_1_steer_joint", "wheel_1_drive_joint", "wheel_1_leg_joint"]
+    assert dict(counts) == summary["recorded_messages"]
+    assert twists == [_twist_tuple(t) for t in sent]
+    assert legs == sent_legs
