@@ -678,6 +678,11 @@ def test_stop_and_rearm_services(live):
     peer.wait("supervisor_state", lambda m: m.data == "stopped", t0=t0, timeout=5, what="'stopped'")
     texts = [m.data.split()[0] for m in peer.since("supervisor_state", t0)]
     assert texts.index("stopped") >= 1 and set(texts) <= {"tracking", "stopping", "stopped"}, texts
+    # While the requested stop decelerates, the cause is the stop, not a command timeout.
+    halting = [m.data for m in peer.since("supervisor_state", t0) if "halting" in m.data]
+    assert all(h.endswith("(halting: stop request)") for h in halting), halting
+    causes = {supervisor(a)["limiting"] for a in peer.since("diagnostics", t0)}
+    assert "command timeout" not in causes, causes
     # `stopped` is declared once the reference is at rest; the wheels follow with the drives'
     # lag. cmd_vel keeps coming for 1.5 s: it is ignored and the base stays at rest.
     t_s = stamp(stopped)

@@ -167,6 +167,9 @@ pub enum Limiting {
     Aligning,
     /// No valid command for longer than the command timeout: stopping.
     Timeout,
+    /// A stop was requested (SIGINT/SIGTERM, `~/stop`, the end of the command stream):
+    /// stopping, then holding until re-armed.
+    Stop,
 }
 
 impl Limiting {
@@ -181,6 +184,7 @@ impl Limiting {
             Self::LegSpeed => "leg speed",
             Self::Aligning => "aligning",
             Self::Timeout => "command timeout",
+            Self::Stop => "stop request",
         }
     }
 }

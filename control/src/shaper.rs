@@ -216,6 +216,9 @@ pub struct Shaper {
     phase: Phase,
     twist_cmd: Twist,
     halted: bool,
+    /// Why it is halted (reported as the limiting cause while halted): the command timeout,
+    /// a stop request, or nothing (never commanded yet, or reset).
+    halt_reason: Limiting,
     leg_target: [f64; MAX_WHEELS],
     legs_move: LegMove,
     goal: Q,
@@ -299,6 +302,7 @@ impl Shaper {
             phase: Phase::Cruise,
             twist_cmd: Twist::default(),
             halted: true,
+            halt_reason: Limiting::None,
             leg_target: legs,
             legs_move: LegMove::Idle,
             goal: [0.0; NQ],
@@ -338,6 +342,7 @@ impl Shaper {
         self.phase = Phase::Cruise;
         self.twist_cmd = Twist::default();
         self.halted = true;
+        self.halt_reason = Limiting::None;
         self.leg_target = self.legs;
         self.legs_move = LegMove::Idle;
         self.goal = [0.0; NQ];
@@ -386,7 +391,14 @@ impl Shaper {
     /// Bring everything to rest (command timeout, stop request): steering held, legs stop
     /// where they are (their targets are kept for the next command).
     pub fn halt(&mut self) {
+        self.halt_for(Limiting::Timeout);
+    }
+
+    /// [`Shaper::halt`] for a stated reason, reported as the limiting cause while halted
+    /// ([`Limiting::Timeout`] for the command timeout, [`Limiting::Stop`] for a stop request).
+    pub fn halt_for(&mut self, why: Limiting) {
         self.halted = true;
+        self.halt_reason = why;
     }
 
     /// True while halted (no command is followed).
@@ -448,7 +460,7 @@ impl Shaper {
     /// have somewhere to go — and what binds κ.
     fn twist_goal(&self) -> ([f64; 3], f64, Limiting) {
         if self.halted {
-            return ([0.0; 3], 1.0, Limiting::Timeout);
+            return ([0.0; 3], 1.0, self.halt_reason);
         }
         let q = [self.twist_cmd.vx, self.twist_cmd.vy, self.twist_cmd.omega];
         let mut vmax = self.cfg.speed_fraction * self.limits.wheel_speed * self.rw;
@@ -1045,7 +1057,7 @@ impl Shaper {
             }
         }
         if self.halted {
-            self.limiting = Limiting::Timeout;
+            self.limiting = self.halt_reason;
         }
         // Integrate the reference (trapezoid over the cycle).
         let avg = Twist {

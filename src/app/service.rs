@@ -328,7 +328,7 @@ impl StatusLog {
             let quiet_for = self
                 .last_limit_log
                 .is_none_or(|t| t.elapsed() > Duration::from_secs(2));
-            if l != Limiting::None && l != Limiting::Timeout && quiet_for {
+            if !matches!(l, Limiting::None | Limiting::Timeout | Limiting::Stop) && quiet_for {
                 tracing::debug!(
                     "slowing: {} (command scaled by {:.2})",
                     l.name(),

@@ -265,8 +265,10 @@ pub(crate) fn status_line() -> super::service::StateConsumer {
         }
         last = Instant::now();
         let o = &s.odometry;
+        use rollbase_control::ports::Limiting;
         let limit = match s.shaping.limiting {
-            rollbase_control::ports::Limiting::None => String::new(),
+            Limiting::None => String::new(),
+            l @ (Limiting::Timeout | Limiting::Stop) => format!("  halting: {}", l.name()),
             l => format!("  slowed by {}", l.name()),
         };
         let reason = s.reason.map(|r| format!("  {r}")).unwrap_or_default();

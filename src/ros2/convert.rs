@@ -173,20 +173,26 @@ pub fn joint_state(s: &BaseState, names: &[String]) -> JointState {
 }
 
 /// The `supervisor_state` text: `<state>[: <fault reason>][ (limited by <what>, speed scale
-/// <s>)]`, e.g. `tracking`, `fault: stale feedback …`, `tracking (limited by steering rate,
-/// speed scale 0.62)`. The first word is always the state name (`idle`, `aligning`,
+/// <s>)][ (halting: command timeout|stop request)]`, e.g. `tracking`, `fault: stale feedback
+/// …`, `tracking (limited by steering rate, speed scale 0.62)`, `tracking (halting: stop
+/// request)` while a requested stop decelerates. The first word is always the state name (`idle`, `aligning`,
 /// `tracking`, `stopping`, `stopped`, `fault`).
 pub fn supervisor_text(s: &BaseState) -> StringMsg {
     let mut data = s.state.name().to_string();
     if let Some(r) = s.reason {
         data.push_str(&format!(": {r}"));
     }
-    if s.shaping.limiting != rollbase_control::ports::Limiting::None {
-        data.push_str(&format!(
+    use rollbase_control::ports::Limiting;
+    match s.shaping.limiting {
+        Limiting::None => {}
+        l @ (Limiting::Timeout | Limiting::Stop) => {
+            data.push_str(&format!(" (halting: {})", l.name()));
+        }
+        l => data.push_str(&format!(
             " (limited by {}, speed scale {:.2})",
-            s.shaping.limiting.name(),
+            l.name(),
             s.shaping.scale
-        ));
+        )),
     }
     StringMsg { data }
 }

@@ -876,6 +876,9 @@ pub fn run_realtime(
     Ok(summary)
 }
 
+/// The thread of [`spawn_realtime`]: it returns the simulator and the run's result.
+pub type SimHandle = std::thread::JoinHandle<(Simulator, Result<RealtimeSummary, SimError>)>;
+
 /// Runs [`run_realtime`] on its own thread (for in-process use, e.g. `rollbase demo` with a
 /// wall-clock `VirtualBus` node). Set `stop` to end it; the thread returns the simulator
 /// (for its truth and statistics) and the run's result.
@@ -884,9 +887,39 @@ pub fn spawn_realtime(
     mut bus: Box<dyn CanBus>,
     stop: Arc<AtomicBool>,
     duration: Option<Duration>,
-) -> std::thread::JoinHandle<(Simulator, Result<RealtimeSummary, SimError>)> {
+) -> SimHandle {
     std::thread::spawn(move || {
         let r = run_realtime(&mut sim, bus.as_mut(), &stop, duration);
         (sim, r)
     })
+}
+
+/// [`spawn_realtime`] on a thread that first asks for SCHED_FIFO `priority` (the simulated
+/// modules stand in for hardware, which never waits for a busy host). The returned receiver
+/// gets one line saying whether the priority was granted (without CAP_SYS_NICE or an rtprio
+/// limit the thread runs with normal scheduling).
+pub fn spawn_realtime_at_priority(
+    mut sim: Simulator,
+    mut bus: Box<dyn CanBus>,
+    stop: Arc<AtomicBool>,
+    duration: Option<Duration>,
+    priority: i32,
+) -> (SimHandle, std::sync::mpsc::Receiver<String>) {
+    let (tx, rx) = std::sync::mpsc::channel();
+    let h = std::thread::spawn(move || {
+        let lines = rollbase_control::runtime::realtime_setup(
+            &rollbase_control::runtime::RealtimeOptions {
+                fifo_priority: Some(priority),
+                lock_memory: false,
+                max_cycles: None,
+            },
+        );
+        for l in lines {
+            let _ = tx.send(l.replace("cycle thread", "simulator thread"));
+        }
+        drop(tx);
+        let r = run_realtime(&mut sim, bus.as_mut(), &stop, duration);
+        (sim, r)
+    });
+    (h, rx)
 }

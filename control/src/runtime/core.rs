@@ -480,7 +480,7 @@ impl CycleCore {
             Source::Trajectory(s) => s.track_start_cycle = None,
             Source::Live(l) => {
                 l.stop_pending = false;
-                l.shaper.halt();
+                l.shaper.halt_for(Limiting::None);
             }
         }
         if self.link.ready() {
@@ -509,7 +509,7 @@ impl CycleCore {
         if let Source::Live(l) = &mut self.source {
             l.stop_pending = true;
             l.exit = true;
-            l.shaper.halt();
+            l.shaper.halt_for(Limiting::Stop);
         }
     }
 
@@ -591,12 +591,12 @@ impl CycleCore {
                 },
                 CommandKind::Stop => {
                     l.stop_pending = true;
-                    l.shaper.halt();
+                    l.shaper.halt_for(Limiting::Stop);
                 }
                 CommandKind::Shutdown => {
                     l.stop_pending = true;
                     l.exit = true;
-                    l.shaper.halt();
+                    l.shaper.halt_for(Limiting::Stop);
                 }
                 CommandKind::EndOfStream => l.end_of_stream = true,
                 CommandKind::Rearm => {}

@@ -102,7 +102,10 @@ impl RunSummary {
         self.command_timeouts = r.commands.timeouts;
         self.rejected_commands = r.commands.rejected;
         self.ignored_commands = r.commands.ignored;
-        let halted = r.shaping.limiting == crate::ports::Limiting::Timeout;
+        let halted = matches!(
+            r.shaping.limiting,
+            crate::ports::Limiting::Timeout | crate::ports::Limiting::Stop
+        );
         let at_rest = r.command.wheels[..n]
             .iter()
             .all(|w| w.wheel_speed.abs() <= STOP_REST_SPEED);

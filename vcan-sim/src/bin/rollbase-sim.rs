@@ -24,7 +24,10 @@
 use clap::Parser;
 use rollbase_control::Platform;
 use rollbase_driver::bus::{self, BusClock, BusError, CanBus, VirtualBus, VirtualBusConfig};
-use rollbase_vcan_sim::{spawn_realtime, FaultArgs, PlantConfig, SimConfig, SimError, Simulator};
+use rollbase_vcan_sim::{
+    spawn_realtime, spawn_realtime_at_priority, FaultArgs, PlantConfig, SimConfig, SimError,
+    Simulator,
+};
 use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -72,6 +75,12 @@ struct Cli {
     /// Time from a SYNC to the modules' feedback frames (µs).
     #[arg(long, value_name = "US", default_value_t = 300.0)]
     response_latency_us: f64,
+    /// SCHED_FIFO priority of the simulator thread (1–99; 0: normal scheduling). Default 81,
+    /// one above the controller's cycle thread, as in `rollbase demo`: simulated modules, like
+    /// real ones, must not wait for a busy host. Needs CAP_SYS_NICE or an rtprio limit; without
+    /// it the simulator says so and runs with normal scheduling.
+    #[arg(long, value_name = "PRIO", default_value_t = 81, value_parser = clap::value_parser!(i32).range(0..=99))]
+    priority: i32,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -227,7 +236,15 @@ fn run(cli: Cli) -> Result<(), CliError> {
         ),
     }
     let stop = Arc::new(AtomicBool::new(false));
-    let handle = spawn_realtime(sim, bus, stop.clone(), duration);
+    let handle = if cli.priority == 0 {
+        spawn_realtime(sim, bus, stop.clone(), duration)
+    } else {
+        let (h, lines) = spawn_realtime_at_priority(sim, bus, stop.clone(), duration, cli.priority);
+        for l in lines.iter() {
+            say!("rollbase-sim: {l}");
+        }
+        h
+    };
     rt.block_on(async {
         loop {
             tokio::select! {
