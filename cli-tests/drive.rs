@@ -85,6 +85,7 @@ struct Proc {
     lines: Receiver<String>,
     seen: Vec<String>,
     stdout: Option<JoinHandle<String>>,
+    stderr: Option<JoinHandle<()>>,
 }
 
 impl Proc {
@@ -96,13 +97,13 @@ impl Proc {
             .unwrap_or_else(|e| panic!("start {name}: {e}"));
         let stderr = child.stderr.take().expect("stderr");
         let (tx, lines) = mpsc::channel();
-        std::thread::spawn(move || {
+        let stderr = Some(std::thread::spawn(move || {
             for line in BufReader::new(stderr).lines().map_while(Result::ok) {
                 if tx.send(line).is_err() {
                     break;
                 }
             }
-        });
+        }));
         let mut out = child.stdout.take().expect("stdout");
         let stdout = Some(std::thread::spawn(move || {
             let mut s = String::new();
@@ -115,6 +116,7 @@ impl Proc {
             lines,
             seen: Vec::new(),
             stdout,
+            stderr,
         }
     }
 
@@ -152,6 +154,7 @@ impl Proc {
     }
 
     /// Waits for the exit (at most [`LIVENESS`]); returns the status and the whole stdout.
+    /// Its whole stderr is read too (see [`Proc::stderr`]).
     fn wait(&mut self) -> (ExitStatus, String) {
         let until = Instant::now() + LIVENESS;
         let status = loop {
@@ -169,6 +172,10 @@ impl Proc {
             .take()
             .map(|h| h.join().unwrap_or_default())
             .unwrap_or_default();
+        // The reader ends at the pipe's end: every line the process wrote is on the channel.
+        if let Some(h) = self.stderr.take() {
+            let _ = h.join();
+        }
         (status, out)
     }
 
