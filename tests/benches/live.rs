@@ -263,15 +263,18 @@ fn case(name: &str) -> (bool, bool) {
     }
 }
 
-/// p50, p99 and max of per-step times (ns), printed as a `STEPTIME` line.
-fn print_step_times(id: &str, mut ns: Vec<f64>) {
-    ns.sort_by(|a, b| a.total_cmp(b));
-    let at = |q: f64| ns[((q * ns.len() as f64).ceil() as usize).clamp(1, ns.len()) - 1];
+/// p50, p99 and max of per-step times (ns), and the step of the max, printed as a
+/// `STEPTIME <id> <p50> <p99> <max> <steps> <step of the max>` line.
+fn print_step_times(id: &str, ns: Vec<f64>) {
+    let worst = (0..ns.len()).fold(0, |w, k| if ns[k] > ns[w] { k } else { w });
+    let mut sorted = ns.clone();
+    sorted.sort_by(|a, b| a.total_cmp(b));
+    let at = |q: f64| sorted[((q * ns.len() as f64).ceil() as usize).clamp(1, ns.len()) - 1];
     println!(
-        "STEPTIME {id} {:.0} {:.0} {:.0} {}",
+        "STEPTIME {id} {:.0} {:.0} {:.0} {} {worst}",
         at(0.50),
         at(0.99),
-        ns[ns.len() - 1],
+        sorted[ns.len() - 1],
         ns.len()
     );
 }
@@ -413,6 +416,10 @@ impl CoreHarness {
 }
 
 fn benches(c: &mut Criterion) {
+    // What else the machine was doing (perf-report prints it beside the figures).
+    if let Ok(l) = std::fs::read_to_string("/proc/loadavg") {
+        println!("LOADAVG {}", l.trim());
+    }
     let p = Platform::justin();
     let events = session(11);
     let cmds = schedule(&p, &events);

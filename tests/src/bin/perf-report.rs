@@ -1115,8 +1115,9 @@ fn report(o: &Options) -> Result<(), String> {
 const LIVE_BEGIN: &str = "<!-- live:begin -->";
 const LIVE_END: &str = "<!-- live:end -->";
 
-/// `STEPTIME <id> <p50 ns> <p99 ns> <max ns> <steps>` lines of the bench logs.
-fn step_times(logs: &[PathBuf]) -> Vec<(String, [f64; 3], u64)> {
+/// `STEPTIME <id> <p50 ns> <p99 ns> <max ns> <steps> [<step of the max>]` lines of the bench
+/// logs.
+fn step_times(logs: &[PathBuf]) -> Vec<(String, [f64; 3], u64, Option<u64>)> {
     let mut v = Vec::new();
     for l in logs {
         let Ok(text) = std::fs::read_to_string(l) else {
@@ -1128,7 +1129,12 @@ fn step_times(logs: &[PathBuf]) -> Vec<(String, [f64; 3], u64)> {
                 if let (Ok(a), Ok(b), Ok(c), Ok(n)) =
                     (f[2].parse(), f[3].parse(), f[4].parse(), f[5].parse())
                 {
-                    v.push((f[1].to_string(), [a, b, c], n));
+                    v.push((
+                        f[1].to_string(),
+                        [a, b, c],
+                        n,
+                        f.get(6).and_then(|k| k.parse().ok()),
+                    ));
                 }
             }
         }
@@ -1205,29 +1211,32 @@ fn live_section(o: &Options) -> String {
         "The work is uneven: a new goal plans a transition (its grid is refined where a \
          wheel's steering turns fastest), the cycles after it only sample the plan. Every \
          step timed alone (two `Instant` readings around it) in 5 replays of the session, \
-         each step's minimum over them kept (a preemption by other work on the machine hits \
-         one replay, not all five), so the maximum is the most expensive step itself:"
+         each step's minimum over them kept (a preemption by other work on the machine seldom \
+         hits the same step in all five), so the maximum is the most expensive step's own \
+         cost, plus what preemption is left on a busy machine (see the load average below; \
+         the step it was found at is the same across the rows when it is the plan's cost):"
     )
     .ok();
     writeln!(w).ok();
     writeln!(
         w,
-        "| benchmark | p50 | p99 | max | steps | allocations |\n|---|---|---|---|---|---|"
+        "| benchmark | p50 | p99 | max (at step) | steps | allocations |\n|---|---|---|---|---|---|"
     )
     .ok();
     if times.is_empty() {
         writeln!(w, "| (no live bench log given) | | | | | |").ok();
     }
-    for (id, [p50, p99, max], n) in &times {
+    for (id, [p50, p99, max], n, at) in &times {
         let a = allocs
             .iter()
             .find(|a| &a.0 == id)
             .map_or("not counted".to_string(), |a| {
                 format!("{} in {} steps", a.1, a.2)
             });
+        let at = at.map(|k| format!(" ({k})")).unwrap_or_default();
         writeln!(
             w,
-            "| `{id}` | {:.2} µs | {:.2} µs | {:.2} µs | {n} | {a} |",
+            "| `{id}` | {:.2} µs | {:.2} µs | {:.2} µs{at} | {n} | {a} |",
             p50 / 1e3,
             p99 / 1e3,
             max / 1e3
@@ -1243,12 +1252,27 @@ fn live_section(o: &Options) -> String {
                 .map(|m| m.trim().to_string())
         })
         .unwrap_or_else(|| "unknown CPU".into());
+    // The load when the benchmark started (its `LOADAVG` line), else now.
+    let load = o
+        .bench_logs
+        .iter()
+        .filter_map(|l| std::fs::read_to_string(l).ok())
+        .find_map(|t| {
+            t.lines()
+                .find_map(|l| l.strip_prefix("LOADAVG ").map(|x| x.trim().to_string()))
+        })
+        .map(|l| format!("load average when the benchmark started: {l}"))
+        .unwrap_or_else(|| {
+            format!(
+                "load average when this section was written: {}",
+                sh("cat", &["/proc/loadavg"])
+            )
+        });
     writeln!(
         w,
-        "Machine: {model}, {} CPU(s), {}; load average when this section was written: {}.",
+        "Machine: {model}, {} CPU(s), {}; {load}.",
         sh("nproc", &[]),
-        sh("rustc", &["-V"]),
-        sh("cat", &["/proc/loadavg"])
+        sh("rustc", &["-V"])
     )
     .ok();
     writeln!(w, "{LIVE_END}").ok();
