@@ -21,6 +21,13 @@
 //! - `stop: true`: a controlled stop; the platform then holds until `rearm: true`.
 //! - `rearm: true`: clear latched faults whose cause is gone and follow commands again.
 //!
+//! Non-finite numbers are not JSON, but encoders write them anyway: Python's `json` as the
+//! bare words `NaN`, `Infinity` and `-Infinity`, others (serde_json, nlohmann::json) as
+//! `null`. A numeric field holding one of those (or the strings `"NaN"`, `"Infinity"`,
+//! `"-Infinity"`) is read as that value, so the command port rejects the command, names the
+//! field and counts it (`rejected_commands`) like any other non-finite command, instead of the
+//! line being skipped as unreadable.
+//!
 //! Blank lines and lines starting with `#` are skipped. A line longer than
 //! [`MAX_LINE_BYTES`] or that is not such an object is an error naming the line and the field.
 //! The command port checks the values again (finite, within the sanity bounds, leg range)
@@ -86,6 +93,60 @@ fn line_error(source: &str, line: usize, message: impl Into<String>) -> CommandF
     }
 }
 
+/// The line with the bare words `NaN`, `Infinity` and `-Infinity` outside string literals
+/// quoted (`"NaN"` …), so a JSON parser reads them; [`number`] turns them back into values.
+/// Borrowed when there is none.
+fn quote_non_finite(s: &str) -> std::borrow::Cow<'_, str> {
+    const WORDS: [&str; 3] = ["-Infinity", "Infinity", "NaN"];
+    if !WORDS.iter().any(|w| s.contains(w)) {
+        return std::borrow::Cow::Borrowed(s);
+    }
+    let mut out = String::with_capacity(s.len() + 8);
+    let (mut in_string, mut escaped) = (false, false);
+    let mut rest = s;
+    while let Some(c) = rest.chars().next() {
+        if in_string {
+            if escaped {
+                escaped = false;
+            } else if c == '\\' {
+                escaped = true;
+            } else if c == '"' {
+                in_string = false;
+            }
+        } else if c == '"' {
+            in_string = true;
+        } else if let Some(w) = WORDS.iter().find(|w| rest.starts_with(**w)) {
+            let glued = |c: Option<char>| c.is_some_and(|c| c.is_alphanumeric() || c == '_');
+            if !glued(out.chars().next_back()) && !glued(rest[w.len()..].chars().next()) {
+                out.push('"');
+                out.push_str(w);
+                out.push('"');
+                rest = &rest[w.len()..];
+                continue;
+            }
+        }
+        out.push(c);
+        rest = &rest[c.len_utf8()..];
+    }
+    std::borrow::Cow::Owned(out)
+}
+
+/// A numeric field's value: a JSON number, or a non-finite value as encoders write it
+/// (`null`, `"NaN"`, `"Infinity"`, `"-Infinity"`; see the module docs).
+fn number(x: &serde_json::Value) -> Option<f64> {
+    match x {
+        serde_json::Value::Number(n) => n.as_f64(),
+        serde_json::Value::Null => Some(f64::NAN),
+        serde_json::Value::String(s) => match s.as_str() {
+            "NaN" => Some(f64::NAN),
+            "Infinity" => Some(f64::INFINITY),
+            "-Infinity" => Some(f64::NEG_INFINITY),
+            _ => None,
+        },
+        _ => None,
+    }
+}
+
 /// Parses one line (`source` and `line` name it in errors). `Ok(None)` for a blank or
 /// comment line.
 pub fn parse_line(
@@ -107,7 +168,7 @@ pub fn parse_line(
             ),
         ));
     }
-    let v: serde_json::Value = serde_json::from_str(s).map_err(|e| {
+    let v: serde_json::Value = serde_json::from_str(&quote_non_finite(s)).map_err(|e| {
         line_error(
             source,
             line,
@@ -136,7 +197,7 @@ pub fn parse_line(
     let num = |k: &str| -> Result<Option<f64>, CommandFileError> {
         match obj.get(k) {
             None => Ok(None),
-            Some(x) => x.as_f64().map(Some).ok_or_else(|| {
+            Some(x) => number(x).map(Some).ok_or_else(|| {
                 line_error(source, line, format!("field `{k}` = {x} is not a number"))
             }),
         }
@@ -171,7 +232,7 @@ pub fn parse_line(
         Some(serde_json::Value::Array(a)) => {
             let mut l = Vec::with_capacity(a.len());
             for (i, x) in a.iter().enumerate() {
-                l.push(x.as_f64().ok_or_else(|| {
+                l.push(number(x).ok_or_else(|| {
                     line_error(
                         source,
                         line,
@@ -349,6 +410,56 @@ mod tests {
         assert!(e("{nope").contains("not a JSON object"));
         let long = format!(r#"{{"t": 1, "stop": true, "pad": "{}"}}"#, "x".repeat(5000));
         assert!(e(&long).contains("longer than"));
+    }
+
+    #[test]
+    fn non_finite_values_as_encoders_write_them_reach_the_command_port() {
+        let twist = |s: &str| match parse(s).unwrap().unwrap().kind {
+            CommandKind::Motion(m) => m.twist,
+            k => panic!("{k:?}"),
+        };
+        // Python's json.dumps(float("nan")) and float("inf").
+        assert!(twist(r#"{"t": 1, "vx": NaN, "vy": 0.0, "omega": 0.0}"#)
+            .vx
+            .is_nan());
+        let t = twist(r#"{"vx": Infinity, "vy": -Infinity, "omega": 0}"#);
+        assert_eq!((t.vx, t.vy), (f64::INFINITY, f64::NEG_INFINITY));
+        // serde_json and nlohmann::json write NaN as null.
+        assert!(twist(r#"{"vx": 0, "vy": null, "omega": 0}"#).vy.is_nan());
+        assert!(twist(r#"{"vx": 0, "vy": 0, "omega": "NaN"}"#)
+            .omega
+            .is_nan());
+        assert!(matches!(
+            parse(r#"{"legs": [0.4, NaN, 0.4, 0.4]}"#).unwrap().unwrap().kind,
+            CommandKind::Legs(l) if l.as_slice()[1].is_nan()
+        ));
+        // The port rejects them, naming the field.
+        let p = rollbase_control::Platform::justin();
+        let m = match parse(r#"{"vx": 0.1, "vy": NaN, "omega": 0}"#)
+            .unwrap()
+            .unwrap()
+            .kind
+        {
+            CommandKind::Motion(m) => m,
+            k => panic!("{k:?}"),
+        };
+        let e = rollbase_control::command::check_motion(&p, &m).unwrap_err();
+        assert!(e.to_string().contains("`vy` is NaN"), "{e}");
+        // Only bare words outside strings, never a field name, a word inside another or `t`.
+        assert!(parse(r#"{"t": NaN, "stop": true}"#)
+            .unwrap_err()
+            .to_string()
+            .contains("`t` = NaN"));
+        assert!(parse(r#"{"vx": NaNa, "vy": 0, "omega": 0}"#)
+            .unwrap_err()
+            .to_string()
+            .contains("not a JSON object"));
+        assert!(parse(r#"{"NaN": 1}"#)
+            .unwrap_err()
+            .to_string()
+            .contains("unknown field `NaN`"));
+        assert!(parse(r#"{"vx": "fast", "vy": 0, "omega": 0}"#).is_err());
+        assert!(parse(r#"{"stop": null}"#).is_err());
     }
 
     #[test]

@@ -27,7 +27,8 @@ pub fn init_logging() {
     };
     let installed = tracing_subscriber::fmt()
         .with_env_filter(filter)
-        .with_writer(std::io::stderr)
+        // stderr; a line of its own beside `demo --teleop`'s status line.
+        .with_writer(app::log_writer)
         .with_ansi(std::io::stderr().is_terminal())
         .with_target(false)
         .log_internal_errors(false)

@@ -43,6 +43,7 @@ mod rt;
 mod service;
 mod sinks;
 mod teleop;
+pub(crate) use teleop::log_writer;
 mod trajectory;
 
 use monitor::MonitorArgs;

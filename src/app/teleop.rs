@@ -17,6 +17,12 @@
 //! the command is repeated at 20 Hz meanwhile; then a zero twist follows (the platform stops
 //! within its limits, steering held). Should the keyboard thread stall, the driver's own
 //! command timeout stops the platform.
+//!
+//! The terminal's mode is restored however the run ends (Esc, Ctrl-C, SIGTERM, an error): by
+//! the keyboard thread when it ends, and at process exit otherwise (the thread may still be
+//! blocked reading the keyboard then). Log lines and the status line share the terminal: a
+//! log line clears the status line first ([`log_writer`]), the status line is drawn again
+//! below it, and the last status line is ended with a newline before the run's report.
 
 use rollbase_control::ports::{BaseState, CommandEvent, CommandKind, LegTargets, MotionCommand};
 use rollbase_control::types::Twist;
@@ -98,11 +104,31 @@ pub(crate) fn decode(bytes: &[u8]) -> Vec<Key> {
     out
 }
 
-/// The terminal in raw mode (no line buffering, no echo; Ctrl-C still signals), restored when
-/// dropped.
-struct RawTerminal {
-    saved: libc::termios,
+/// The terminal's mode before raw mode, while raw mode is on (for [`restore_terminal`]).
+static SAVED_MODE: Mutex<Option<libc::termios>> = Mutex::new(None);
+
+/// Puts the terminal back in the mode it had before raw mode (once; later calls do nothing).
+fn restore_terminal() {
+    // At exit another thread may hold the lock forever (it cannot: it only holds it here),
+    // so never wait for it.
+    let Ok(mut saved) = SAVED_MODE.try_lock() else {
+        return;
+    };
+    if let Some(t) = saved.take() {
+        // SAFETY: restores a mode tcgetattr filled in for fd 0.
+        unsafe {
+            libc::tcsetattr(0, libc::TCSANOW, &t);
+        }
+    }
 }
+
+extern "C" fn restore_terminal_at_exit() {
+    restore_terminal();
+}
+
+/// The terminal in raw mode (no line buffering, no echo; Ctrl-C still signals), restored when
+/// dropped or, if it never is (its thread blocked in a read at exit), when the process exits.
+struct RawTerminal;
 
 impl RawTerminal {
     fn enter() -> Result<Self, CliError> {
@@ -124,23 +150,54 @@ impl RawTerminal {
             t.c_lflag &= !(libc::ICANON | libc::ECHO);
             t.c_cc[libc::VMIN] = 1;
             t.c_cc[libc::VTIME] = 0;
+            if let Ok(mut s) = SAVED_MODE.lock() {
+                *s = Some(saved);
+            }
+            // std::process::exit (how every run ends) runs the C atexit handlers.
+            libc::atexit(restore_terminal_at_exit);
             if libc::tcsetattr(0, libc::TCSANOW, &t) != 0 {
                 return Err(CliError::Usage(format!(
                     "cannot put the terminal in raw mode: {}",
                     std::io::Error::last_os_error()
                 )));
             }
-            Ok(Self { saved })
+            Ok(Self)
         }
     }
 }
 
 impl Drop for RawTerminal {
     fn drop(&mut self) {
-        // SAFETY: restores the mode read in `enter`.
-        unsafe {
-            libc::tcsetattr(0, libc::TCSANOW, &self.saved);
+        restore_terminal();
+    }
+}
+
+/// Whether the status line is on the terminal (log lines clear it first).
+static STATUS_SHOWN: AtomicBool = AtomicBool::new(false);
+
+/// The log's writer (stderr; `init_logging` installs it): while the teleop status line is on
+/// the terminal, each log line first clears it, so the log line starts at the left margin
+/// instead of after the status text (the status line is drawn again below on its next
+/// update).
+pub(crate) fn log_writer() -> LogWriter {
+    LogWriter { first: true }
+}
+
+/// One log line's writer ([`log_writer`]).
+pub(crate) struct LogWriter {
+    first: bool,
+}
+
+impl Write for LogWriter {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let mut e = std::io::stderr().lock();
+        if std::mem::take(&mut self.first) && STATUS_SHOWN.load(Ordering::Relaxed) {
+            e.write_all(b"\r\x1b[2K")?;
         }
+        e.write(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        std::io::stderr().flush()
     }
 }
 
@@ -255,15 +312,30 @@ pub(crate) fn start(
     Ok(())
 }
 
+/// Ends the status line (a newline) when the state consumer is dropped, at the end of the
+/// run, so the report that follows starts on a line of its own.
+struct StatusLine;
+
+impl Drop for StatusLine {
+    fn drop(&mut self) {
+        if STATUS_SHOWN.swap(false, Ordering::Relaxed) {
+            errln!();
+        }
+    }
+}
+
 /// The live status line of teleop (stderr, about 5 times a second): pose, speeds, state and
 /// what limits the motion.
 pub(crate) fn status_line() -> super::service::StateConsumer {
     let mut last = Instant::now();
+    let line = StatusLine;
     Box::new(move |s: &BaseState| {
+        let _ = &line;
         if last.elapsed() < Duration::from_millis(200) {
             return;
         }
         last = Instant::now();
+        STATUS_SHOWN.store(true, Ordering::Relaxed);
         let o = &s.odometry;
         use rollbase_control::ports::Limiting;
         let limit = match s.shaping.limiting {
@@ -272,7 +344,8 @@ pub(crate) fn status_line() -> super::service::StateConsumer {
             l => format!("  slowed by {}", l.name()),
         };
         let reason = s.reason.map(|r| format!("  {r}")).unwrap_or_default();
-        err!(
+        // One write under the lock: a log line cannot land in the middle of it.
+        let text = format!(
             "\r\x1b[2Kx {:+.2} y {:+.2} θ {:+6.1}°  v ({:+.2}, {:+.2}) ω {:+.2}  legs {:.3}  {}{}{}   (Esc quits)",
             o.pose.x,
             o.pose.y,
@@ -285,7 +358,9 @@ pub(crate) fn status_line() -> super::service::StateConsumer {
             limit,
             reason
         );
-        let _ = std::io::stderr().flush();
+        let mut e = std::io::stderr().lock();
+        let _ = e.write_all(text.as_bytes());
+        let _ = e.flush();
     })
 }
 

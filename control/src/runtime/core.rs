@@ -169,6 +169,27 @@ struct WheelDiag {
     last_seq: Option<u8>,
 }
 
+/// The decode stage's output: the measurement and the age of what it is made of.
+struct Decoded {
+    meas: Measurement,
+    /// Data age per wheel (cycles): its oldest stream.
+    age: [u32; MAX_WHEELS],
+    /// Module age per wheel (cycles): its newest stream.
+    alive: [u32; MAX_WHEELS],
+    /// The node of each wheel's oldest stream.
+    stale_node: [u8; MAX_WHEELS],
+    /// Receive time of the oldest wheel's newest sample (s; −∞ when none arrived).
+    oldest_fb: f64,
+}
+
+/// What the cycle sent, for its record.
+struct Sent {
+    cmd: Command,
+    enable: bool,
+    /// The supervisor's mode as sent (`track`, `halt`, `align`, …).
+    mode: &'static str,
+}
+
 /// The cycle minus IO and clocks: decode → odometry → reference (trajectory or shaper) →
 /// avoidance → controller → supervisor → output guard → encode (see the `runtime` module
 /// docs). Built once; allocates nothing per cycle.
@@ -797,66 +818,121 @@ impl CycleCore {
     /// (cleared first; with the CiA 402 profile SDO requests that became due follow);
     /// returns how many were written. The cycle's record is then available from
     /// [`CycleCore::record`], its state from [`CycleCore::base_state`].
+    ///
+    /// The body is the loop itself, one named stage per line.
     pub fn finish_cycle(&mut self, t: f64, out: &mut FrameBuf) -> usize {
         let dt = self.platform.dt();
         self.now = self.now.max(t);
         self.arm_when_ready();
-        // Decode.
+        let fb = self.decode();
+        let odo = self.odom.update(&self.platform, &fb.meas, dt);
+        // Reference: the trajectory or the shaper (after the command timeout), then avoidance.
+        self.live_tick(t);
+        let nominal = self.reference(&fb.meas, &odo);
+        let (reference, av) = self.avoid(&nominal, dt);
+        // Controller (only while tracking) before the supervisor so it can see the result.
+        let (mut sup_in, mut track_cmd) = self.supervisor_input(&fb, &odo, &nominal);
+        if self.sup.state() == SupervisorState::Tracking {
+            track_cmd = self.control(&fb.meas, &odo, &reference, &mut sup_in, dt);
+        }
+        let mode = self.supervise(&sup_in, &fb.meas, &odo, &mut track_cmd);
+        // Command: the supervisor's mode, then the output guard.
+        let (cmd, enable, brake, mode_name) =
+            self.command_for(mode, &fb.meas, &nominal, &reference, track_cmd);
+        let k = self.encode(t, &cmd, enable, brake, out);
+        // Bookkeeping: the command sent, the record, the state port.
+        self.end_of_cycle(&cmd);
+        let sent = Sent {
+            cmd,
+            enable,
+            mode: mode_name,
+        };
+        self.fill_record(t, &fb, &odo, (&nominal, &reference), av, &sent);
+        self.publish_state(t, &fb.meas, &odo, fb.alive, dt);
+        self.cycle += 1;
+        k
+    }
+
+    /// Decode: the latest measurement with the age of each wheel's streams
+    /// ([`CycleCore::measurement`]), and the wheel contact points at the measured legs.
+    fn decode(&mut self) -> Decoded {
         let (meas, age, alive, stale_node, oldest_fb) = self.measurement();
         for (i, w) in meas.wheels[..self.n].iter().enumerate() {
             let a = self.platform.wheels[i].alpha;
             self.wheel_xy[i] = [w.leg * a.cos(), w.leg * a.sin()];
         }
-        // Odometry.
-        let odo = self.odom.update(&self.platform, &meas, dt);
-        // Reference: the trajectory or the shaper, then avoidance.
-        self.live_tick(t);
-        let nominal = self.reference(&meas, &odo);
-        let (reference, av) = self.avoid(&nominal, dt);
-        // Controller (only while tracking) before the supervisor so it can see the result.
-        let (mut sup_in, mut track_cmd) =
-            self.supervisor_input(&meas, &odo, &nominal, age, alive, stale_node);
-        if self.sup.state() == SupervisorState::Tracking {
-            track_cmd = self.control(&meas, &odo, &reference, &mut sup_in, dt);
+        Decoded {
+            meas,
+            age,
+            alive,
+            stale_node,
+            oldest_fb,
         }
-        // Supervisor.
+    }
+
+    /// Supervisor: one step of the state machine on this cycle's inputs; on entering
+    /// Tracking the reference and the controllers start ([`CycleCore::start_tracking`]) and
+    /// `track_cmd` becomes their first command. Returns the mode to command.
+    fn supervise(
+        &mut self,
+        sup_in: &SupervisorInput,
+        meas: &Measurement,
+        odo: &crate::odometry::OdometryOutput,
+        track_cmd: &mut Command,
+    ) -> Mode {
         let at_rest = command_at_rest(&self.last_cmd, self.sup.config().rest_speed);
         let state_before = self.sup.state();
-        let mode = self.sup.step(&self.platform, &sup_in, at_rest);
+        let mode = self.sup.step(&self.platform, sup_in, at_rest);
         if self.sup.state() == SupervisorState::Tracking
             && state_before != SupervisorState::Tracking
         {
-            track_cmd = self.start_tracking(&meas, &odo);
+            *track_cmd = self.start_tracking(meas, odo);
         }
-        // Command: the supervisor's mode, then the output guard.
-        let (cmd, enable, brake, mode_name) =
-            self.command_for(mode, &meas, &nominal, &reference, track_cmd);
-        // Encode.
-        let k = self.encode(t, &cmd, enable, brake, out);
-        self.last_cmd = cmd;
+        mode
+    }
+
+    /// After the setpoints went out: the command becomes the last one sent (the next
+    /// cycle's acceleration limits start from it), and the count of cycles spent at rest in
+    /// a finished state (towards [`CycleCore::done`]) advances or restarts.
+    fn end_of_cycle(&mut self, cmd: &Command) {
+        self.last_cmd = *cmd;
         let settled = matches!(
             self.sup.state(),
             SupervisorState::Stopped | SupervisorState::Fault
-        ) && command_at_rest(&cmd, self.sup.config().rest_speed);
+        ) && command_at_rest(cmd, self.sup.config().rest_speed);
         let idle_stop = self.sup.state() == SupervisorState::Idle && self.stop_requested;
         if (settled || idle_stop) && self.may_end() {
             self.done_cycles = self.done_cycles.saturating_add(1);
         } else {
             self.done_cycles = 0;
         }
-        // Record and state port.
+    }
+
+    /// The cycle's record (started by [`CycleCore::start_cycle`], frames added since):
+    /// measurement and feedback ages, module states, references, the command sent and its
+    /// mode, odometry, avoidance, supervisor state, timing, and the commands taken since the
+    /// last record.
+    fn fill_record(
+        &mut self,
+        t: f64,
+        fb: &Decoded,
+        odo: &crate::odometry::OdometryOutput,
+        (nominal, reference): (&ReferenceSample, &ReferenceSample),
+        av: AvoidanceRecord,
+        sent: &Sent,
+    ) {
         let r = &mut self.record;
         r.t = r.t.min(t);
-        r.measurement = meas;
-        r.feedback_age = age;
+        r.measurement = fb.meas;
+        r.feedback_age = fb.age;
         for i in 0..self.n {
             r.module_state[i] = self.link.wheel_state(i).map_or(255, |s| s.to_raw());
         }
-        r.nominal = nominal;
-        r.reference = reference;
-        r.command = cmd;
-        r.mode = mode_name;
-        r.enable = enable;
+        r.nominal = *nominal;
+        r.reference = *reference;
+        r.command = sent.cmd;
+        r.mode = sent.mode;
+        r.enable = sent.enable;
         r.pose = odo.pose;
         r.twist_body = odo.twist_body;
         r.slip_residual = odo.residual;
@@ -866,20 +942,15 @@ impl CycleCore {
         r.reason = self.sup.reason();
         r.timing.frames_out = r.n_tx_total;
         r.timing.rejected = self.rejected_this_cycle;
-        r.timing.feedback_age_us = if oldest_fb.is_finite() {
-            ((t - oldest_fb) * 1e6).max(0.0)
+        r.timing.feedback_age_us = if fb.oldest_fb.is_finite() {
+            ((t - fb.oldest_fb) * 1e6).max(0.0)
         } else {
             f64::NAN
         };
-        self.publish_state(t, &meas, &odo, alive, dt);
-        self.record.commands = self.state.commands;
-        self.record.shaping = self.state.shaping;
-        self.record.base = self.state;
-        self.record.commands_in = std::mem::replace(&mut self.taken, [None; MAX_RECORDED_COMMANDS]);
-        self.record.commands_in_omitted = std::mem::take(&mut self.taken_omitted);
+        // The commands taken since the last record.
+        r.commands_in = std::mem::replace(&mut self.taken, [None; MAX_RECORDED_COMMANDS]);
+        r.commands_in_omitted = std::mem::take(&mut self.taken_omitted);
         self.n_taken = 0;
-        self.cycle += 1;
-        k
     }
 
     /// CiA 402: arm once every device runs (or fault naming the one that cannot boot).
@@ -1000,13 +1071,11 @@ impl CycleCore {
     /// (zero) tracking command of a cycle that does not track.
     fn supervisor_input(
         &mut self,
-        meas: &Measurement,
+        fb: &Decoded,
         odo: &crate::odometry::OdometryOutput,
         nominal: &ReferenceSample,
-        age: [u32; MAX_WHEELS],
-        alive: [u32; MAX_WHEELS],
-        stale_node: [u8; MAX_WHEELS],
     ) -> (SupervisorInput, Command) {
+        let (meas, age, alive, stale_node) = (&fb.meas, fb.age, fb.alive, fb.stale_node);
         let dt = self.platform.dt();
         let (_, align_err) = alignment_command(&self.platform, meas, nominal);
         // Alignment and the start check need every module's feedback at least once.
@@ -1431,6 +1500,10 @@ impl CycleCore {
                 };
             }
         }
+        // The record carries the command counters, the shaping and the whole state too.
+        self.record.commands = s.commands;
+        self.record.shaping = s.shaping;
+        self.record.base = *s;
     }
 
     /// The record of the last finished cycle.

@@ -4,10 +4,10 @@
 //! One cycle (DESIGN.md "The 250 Hz cycle"):
 //!
 //! ```text
-//!  t_k            t_k + window                         t_k + period
-//!   │ SYNC ──►     │ decode → odometry → supervisor →   │
-//!   │ feedback ◄── │ avoidance → controller → encode    │
-//!   │              │ SETPOINT ──► (one per module)      │
+//!  t_k            t_k + window                                  t_k + period
+//!   │ SYNC ──►     │ decode → odometry → reference → avoidance → │
+//!   │ feedback ◄── │ controller → supervisor → guard → encode    │
+//!   │              │ SETPOINT ──► (one per module)               │
 //! ```
 //!
 //! [`CycleCore`] is the whole cycle minus IO and clocks: [`CycleCore::start_cycle`] returns the

@@ -19,7 +19,14 @@
 //! - the baseline: `cyclictest -t1 -i 4000 -l N -v` (rt-tests), or a minimal
 //!   clock_nanosleep loop in a child process when cyclictest is missing or fails;
 //! - the protocol's bus load from `rollbase_driver::busload` beside the least any protocol
-//!   carrying the same signals needs.
+//!   carrying the same signals needs;
+//! - the base service's per-cycle work on a live command session (`tests/benches/live.rs`:
+//!   criterion medians, per-step percentiles from its `STEPTIME` lines, allocations), in a
+//!   section between `<!-- live:begin -->` and `<!-- live:end -->`.
+//!
+//! `perf-report --section live [--out …] [--criterion …] [--bench-log …]` rewrites only that
+//! section of an existing report (from the live benchmark's results), leaving every other
+//! figure as it was measured.
 
 use rollbase_control::record::CycleRecord;
 use rollbase_control::runtime::{
@@ -51,7 +58,13 @@ fn main() {
         Some("nanosleep-child") => {
             child_cycles(&args).and_then(|n| nanosleep_child(n).map(|v| println!("{v}")))
         }
-        _ => Options::parse(&args).and_then(|o| report(&o)),
+        _ => Options::parse(&args).and_then(|o| match o.section.as_deref() {
+            None => report(&o),
+            Some("live") => update_live_section(&o),
+            Some(other) => Err(format!(
+                "--section `{other}`: the only section written alone is `live`"
+            )),
+        }),
     };
     if let Err(e) = r {
         eprintln!("perf-report: {e}");
@@ -73,6 +86,8 @@ struct Options {
     criterion: PathBuf,
     bench_logs: Vec<PathBuf>,
     cycles: u64,
+    /// Rewrite only this section of `out` (`live`).
+    section: Option<String>,
 }
 
 impl Options {
@@ -82,6 +97,7 @@ impl Options {
             criterion: PathBuf::from("target/criterion"),
             bench_logs: Vec::new(),
             cycles: 10_000,
+            section: None,
         };
         let mut it = args.iter();
         while let Some(a) = it.next() {
@@ -94,6 +110,7 @@ impl Options {
                 "--out" => o.out = val("--out")?.into(),
                 "--criterion" => o.criterion = val("--criterion")?.into(),
                 "--bench-log" => o.bench_logs.push(val("--bench-log")?.into()),
+                "--section" => o.section = Some(val("--section")?),
                 "--cycles" => {
                     let v = val("--cycles")?;
                     o.cycles = v
@@ -104,7 +121,7 @@ impl Options {
                 }
                 "-h" | "--help" => {
                     println!(
-                        "perf-report [--out docs/performance.md] [--criterion target/criterion] [--bench-log FILE]... [--cycles 10000]"
+                        "perf-report [--out docs/performance.md] [--criterion target/criterion] [--bench-log FILE]... [--cycles 10000] [--section live]"
                     );
                     std::process::exit(0);
                 }
@@ -876,6 +893,10 @@ fn report(o: &Options) -> Result<(), String> {
     }
     writeln!(w).ok();
 
+    // Live commands (base service).
+    w.push_str(&live_section(o));
+    writeln!(w).ok();
+
     // Lockstep.
     writeln!(w, "## Lockstep speed").ok();
     writeln!(w).ok();
@@ -1088,6 +1109,206 @@ fn report(o: &Options) -> Result<(), String> {
     std::fs::write(&o.out, &md).map_err(|e| format!("{}: {e}", o.out.display()))?;
     print!("{md}");
     eprintln!("perf-report: wrote {}", o.out.display());
+    Ok(())
+}
+
+const LIVE_BEGIN: &str = "<!-- live:begin -->";
+const LIVE_END: &str = "<!-- live:end -->";
+
+/// `STEPTIME <id> <p50 ns> <p99 ns> <max ns> <steps> [<step of the max>]` lines of the bench
+/// logs.
+fn step_times(logs: &[PathBuf]) -> Vec<(String, [f64; 3], u64, Option<u64>)> {
+    let mut v = Vec::new();
+    for l in logs {
+        let Ok(text) = std::fs::read_to_string(l) else {
+            continue;
+        };
+        for line in text.lines() {
+            let f: Vec<&str> = line.split_whitespace().collect();
+            if f.len() >= 6 && f[0] == "STEPTIME" {
+                if let (Ok(a), Ok(b), Ok(c), Ok(n)) =
+                    (f[2].parse(), f[3].parse(), f[4].parse(), f[5].parse())
+                {
+                    v.push((
+                        f[1].to_string(),
+                        [a, b, c],
+                        n,
+                        f.get(6).and_then(|k| k.parse().ok()),
+                    ));
+                }
+            }
+        }
+    }
+    v
+}
+
+/// The base service's section (between its markers): the live benchmark's medians, per-step
+/// percentiles and allocations, with the machine and load it ran on.
+fn live_section(o: &Options) -> String {
+    let mut md = String::new();
+    let w = &mut md;
+    let allocs = alloc_counts(&o.bench_logs);
+    let times = step_times(&o.bench_logs);
+    writeln!(w, "{LIVE_BEGIN}").ok();
+    writeln!(w, "## Live commands (base service)").ok();
+    writeln!(w).ok();
+    writeln!(
+        w,
+        "`tests/benches/live.rs`: what `rollbase drive` computes per cycle while following live \
+         commands. A 30 s session of random commands (a new twist every 1–2.5 s, up to 2 m/s \
+         and 3 rad/s, so most are beyond the limits and shaped; leg targets with some; each \
+         repeated every 0.2 s like a live sender) is recorded from a closed loop against the \
+         ideal plant and replayed: the shaper gets the same commands at the same cycles, \
+         avoidance runs on the shaped reference, the controller (DFL while the reference \
+         moves, the kinematic controller near rest, as `CycleCore` switches them) sees the \
+         recorded measurements. The last row is the whole controller side of a live cycle on \
+         the full frame path against the simulated modules (`CycleCore::new_live`, `drive`'s \
+         default: avoidance off): command port, SYNC, 8 feedback frames, `finish_cycle` \
+         (decode, odometry, shaper, controller, supervisor, output guard, encode, record, \
+         state port). Criterion median with its 95 % confidence interval; each criterion \
+         sample runs many consecutive cycles of the session, so this is the mean cost of a \
+         cycle over the session (the few expensive planning steps spread over the rest); \
+         reference: the 4 ms cycle."
+    )
+    .ok();
+    writeln!(w).ok();
+    writeln!(
+        w,
+        "| benchmark | median | 95 % CI | share of the 4 ms cycle |\n|---|---|---|---|"
+    )
+    .ok();
+    for (id, what) in [
+        (
+            "live/shaper_avoid_control",
+            "shaper + avoidance + controller (`drive --avoidance on`)",
+        ),
+        (
+            "live/shaper_control",
+            "shaper + controller (`drive`'s default)",
+        ),
+        ("live/shaper_only", "shaper alone"),
+        (
+            "live/cycle_core_whole_cycle",
+            "CycleCore (live): command port + start_cycle + 8 × on_frame + finish_cycle",
+        ),
+    ] {
+        match criterion_median(&o.criterion, id) {
+            Some(e) => writeln!(
+                w,
+                "| {what} (`{id}`) | {:.2} µs | {:.2}–{:.2} µs | {:.3} % |",
+                e.median_ns / 1e3,
+                e.lo_ns / 1e3,
+                e.hi_ns / 1e3,
+                e.median_ns / 4e6 * 100.0
+            ),
+            None => writeln!(w, "| {what} (`{id}`) | not measured | | |"),
+        }
+        .ok();
+    }
+    writeln!(w).ok();
+    writeln!(
+        w,
+        "The work is uneven: a new goal plans a transition (its grid is refined where a \
+         wheel's steering turns fastest), the cycles after it only sample the plan. Every \
+         step timed alone (two `Instant` readings around it) in 5 replays of the session, \
+         each step's minimum over them kept (a preemption by other work on the machine seldom \
+         hits the same step in all five), so the maximum is the most expensive step's own \
+         cost, plus what preemption is left on a busy machine (see the load average below; \
+         the step it was found at is the same across the rows when it is the plan's cost):"
+    )
+    .ok();
+    writeln!(w).ok();
+    writeln!(
+        w,
+        "| benchmark | p50 | p99 | max (at step) | steps | allocations |\n|---|---|---|---|---|---|"
+    )
+    .ok();
+    if times.is_empty() {
+        writeln!(w, "| (no live bench log given) | | | | | |").ok();
+    }
+    for (id, [p50, p99, max], n, at) in &times {
+        let a = allocs
+            .iter()
+            .find(|a| &a.0 == id)
+            .map_or("not counted".to_string(), |a| {
+                format!("{} in {} steps", a.1, a.2)
+            });
+        let at = at.map(|k| format!(" ({k})")).unwrap_or_default();
+        writeln!(
+            w,
+            "| `{id}` | {:.2} µs | {:.2} µs | {:.2} µs{at} | {n} | {a} |",
+            p50 / 1e3,
+            p99 / 1e3,
+            max / 1e3
+        )
+        .ok();
+    }
+    writeln!(w).ok();
+    let model = sh("lscpu", &[])
+        .lines()
+        .find_map(|l| {
+            l.trim()
+                .strip_prefix("Model name:")
+                .map(|m| m.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    // The load when the benchmark started (its `LOADAVG` line), else now.
+    let load = o
+        .bench_logs
+        .iter()
+        .filter_map(|l| std::fs::read_to_string(l).ok())
+        .find_map(|t| {
+            t.lines()
+                .find_map(|l| l.strip_prefix("LOADAVG ").map(|x| x.trim().to_string()))
+        })
+        .map(|l| format!("load average when the benchmark started: {l}"))
+        .unwrap_or_else(|| {
+            format!(
+                "load average when this section was written: {}",
+                sh("cat", &["/proc/loadavg"])
+            )
+        });
+    writeln!(
+        w,
+        "Machine: {model}, {} CPU(s), {}; {load}.",
+        sh("nproc", &[]),
+        sh("rustc", &["-V"])
+    )
+    .ok();
+    writeln!(w, "{LIVE_END}").ok();
+    md
+}
+
+/// `--section live`: the live section of the existing report replaced (or inserted before
+/// "## Lockstep speed"), the rest of the file unchanged.
+fn update_live_section(o: &Options) -> Result<(), String> {
+    let old = std::fs::read_to_string(&o.out).map_err(|e| {
+        format!(
+            "{}: {e} (--section rewrites a section of an existing report)",
+            o.out.display()
+        )
+    })?;
+    let section = live_section(o);
+    let new = match (old.find(LIVE_BEGIN), old.find(LIVE_END)) {
+        (Some(b), Some(e)) if e > b => {
+            format!(
+                "{}{}{}",
+                &old[..b],
+                section.trim_end(),
+                &old[e + LIVE_END.len()..]
+            )
+        }
+        _ => match old.find("## Lockstep speed") {
+            Some(at) => format!("{}{section}\n{}", &old[..at], &old[at..]),
+            None => format!("{}\n{section}", old.trim_end()),
+        },
+    };
+    std::fs::write(&o.out, &new).map_err(|e| format!("{}: {e}", o.out.display()))?;
+    print!("{section}");
+    eprintln!(
+        "perf-report: rewrote the live section of {}",
+        o.out.display()
+    );
     Ok(())
 }
 
