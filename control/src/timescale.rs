@@ -148,8 +148,11 @@ pub struct TimeScaleConfig {
     /// Fraction of the speed-type limits (wheel speed, steering rate, leg speed) the scaled
     /// reference may use. Default: the shaper's `speed_fraction` (0.9).
     pub speed_fraction: f64,
-    /// Fraction of the acceleration limits (wheel, steering) it may use. Default: the
-    /// shaper's `accel_fraction` (0.6).
+    /// Fraction of the acceleration limits (wheel, steering) it may use. Default 0.5, below
+    /// the shaper's 0.6: a live command's transitions are straight lines in velocity space
+    /// that end at rest in acceleration, while a path's curvature can hold a wheel at its
+    /// acceleration share for long stretches, and the residual drive lag turns sustained
+    /// acceleration into tracking error (docs/time-scaling.md, "Margins").
     pub accel_fraction: f64,
     /// Time (s) over which s̈ may build up at ṡ = 1 (bounds the jerk). Default: the shaper's
     /// `jerk_time` (40 ms).
@@ -162,6 +165,12 @@ pub struct TimeScaleConfig {
     /// parametrisation runs at the platform's top speeds, so the limits bind well below this
     /// everywhere except near rest, where it keeps the start and stop gentle. Default 4.
     pub free_scale_cap: f64,
+    /// Largest lateral acceleration |u| |φ̇| of a wheel's contact point (m/s²): the rate at
+    /// which its direction of travel turns times its speed. The steering drives follow the
+    /// reference with a few milliseconds of residual lag, and a wheel a small angle δ off its
+    /// direction rolls δ |u| sideways; that drift is |u| φ̇ × the lag. Default 0.5 m/s² (the
+    /// shaper's `direction_rate` of 1 rad/s at half the platform's top speed).
+    pub lateral_accel: f64,
 }
 
 impl Default for TimeScaleConfig {
@@ -171,15 +180,17 @@ impl Default for TimeScaleConfig {
 }
 
 impl TimeScaleConfig {
-    /// The live-command shaper's margins (one description of how much of each limit a
-    /// reference may use), with the defaults of the scaling's own options.
+    /// The margins shared with the live-command shaper (its speed fraction and jerk time:
+    /// one description of how much of each speed limit a reference may use and how fast its
+    /// accelerations may build up), with the scaling's own defaults for the rest.
     pub fn from_shaper(s: &crate::shaper::ShaperConfig) -> Self {
         Self {
             speed_fraction: s.speed_fraction,
-            accel_fraction: s.accel_fraction,
+            accel_fraction: 0.5,
             jerk_time: s.jerk_time,
             hold_ratio: 0.02,
             free_scale_cap: 4.0,
+            lateral_accel: 0.5,
         }
     }
 
@@ -199,7 +210,8 @@ impl TimeScaleConfig {
         check("accel_fraction", self.accel_fraction, 0.0, 1.0)?;
         check("jerk_time", self.jerk_time, 0.0, 10.0)?;
         check("hold_ratio", self.hold_ratio, 0.0, 0.5)?;
-        check("free_scale_cap", self.free_scale_cap, 0.0, 100.0)
+        check("free_scale_cap", self.free_scale_cap, 0.0, 100.0)?;
+        check("lateral_accel", self.lateral_accel, 0.0, 1000.0)
     }
 }
 
@@ -616,6 +628,13 @@ impl Point {
     }
 }
 
+/// The steering rate (rad/s) a scaled reference may have at its start and end: the change
+/// the steering acceleration share allows in one control cycle (the wheels stand still
+/// before and after, their steering at rest).
+fn start_steer_rate(p: &Platform, cfg: &TimeScaleConfig) -> f64 {
+    cfg.accel_fraction * p.limits.steer_accel * p.dt()
+}
+
 /// Smallest x kept anywhere (the clock never stops).
 const X_FLOOR: f64 = 1e-300;
 
@@ -628,9 +647,21 @@ fn constraints(p: &Platform, cfg: &TimeScaleConfig, n: usize, g: &Grid) -> Vec<P
     let l = &p.limits;
     let rw = p.wheel_radius;
     let (fv, fa) = (cfg.speed_fraction, cfg.accel_fraction * SMOOTHING_MARGIN);
-    (0..g.points())
+    let points = g.points();
+    (0..points)
         .map(|j| {
             let mut xbar = g.caps[j] * g.caps[j];
+            if j == 0 || j + 1 == points {
+                // The wheels start from rest and end at rest without steering: the steering
+                // rate may start and end with at most one cycle's change.
+                let r0 = start_steer_rate(p, cfg);
+                for i in 0..n {
+                    let rate = g.geo[j * n + i].rate.abs();
+                    if rate > 0.0 {
+                        xbar = xbar.min((r0 / rate).powi(2));
+                    }
+                }
+            }
             let mut acc = Vec::with_capacity(2 * n);
             for i in 0..n {
                 let q = &g.geo[j * n + i];
@@ -647,6 +678,9 @@ fn constraints(p: &Platform, cfg: &TimeScaleConfig, n: usize, g: &Grid) -> Vec<P
                 }
                 if q.rate != 0.0 {
                     xbar = xbar.min((fv * l.steer_rate / q.rate).powi(2));
+                    if q.speed > 0.0 {
+                        xbar = xbar.min(cfg.lateral_accel / (q.speed * q.rate.abs()));
+                    }
                 }
                 if q.rate != 0.0 || q.accel != 0.0 {
                     acc.push(Acc {
@@ -783,22 +817,6 @@ impl ScaledTrajectory {
             // Lower the bounds around each violation: over the path the smoothing window
             // mixes into it (twice the jerk time either side), and its own interval.
             let mut factor = vec![1.0f64; points];
-            if std::env::var("TS_DEBUG").is_ok() {
-                eprintln!(
-                    "round {round}: {} violations, worst {}",
-                    violations.len(),
-                    st.timing.max_ratio
-                );
-                for v in violations.iter().take(8) {
-                    eprintln!(
-                        "   t {:.3} tau {:.4} ratio {:.3} speed {}",
-                        v.0,
-                        st.clock(v.0).0,
-                        v.1,
-                        v.2
-                    );
-                }
-            }
             for (t, ratio, speed_type) in violations {
                 let f = if speed_type {
                     (1.0 / ratio).powi(2)
@@ -1016,6 +1034,12 @@ impl ScaledTrajectory {
                     false,
                 ),
                 (r.dz[3 + i] * v, fv * l.leg_speed, Limiting::LegSpeed, true),
+                (
+                    sp * d1 * v * v,
+                    cfg.lateral_accel,
+                    Limiting::SteerRate,
+                    true,
+                ),
             ] {
                 let q = if val.is_finite() {
                     val.abs() / lim
@@ -1053,10 +1077,22 @@ impl ScaledTrajectory {
         let mut out = Vec::new();
         let mut reason = Vec::with_capacity(kt.len());
         let mut min = (f64::INFINITY, 0.0, Limiting::None, 0usize);
+        let r0 = start_steer_rate(&self.platform, cfg);
+        let ends = (kt.first().copied(), kt.last().copied());
         let mut check = |t: f64| {
             let clk = self.clock(t);
             let r = self.inner.sample(if self.pass { t } else { clk.0 });
-            let q = self.ratio(cfg, &r, clk);
+            let mut q = self.ratio(cfg, &r, clk);
+            if Some(t) == ends.0 || Some(t) == ends.1 {
+                for i in 0..self.n {
+                    let [w, dw, ddw] = contact_kinematics(&self.platform, i, &r);
+                    let rate = self.steer_rates(i, clk.0, w, dw, ddw).0 * clk.1;
+                    let e = rate.abs() / r0;
+                    if e > q.0 {
+                        q = (e, Limiting::SteerAccel, i, false);
+                    }
+                }
+            }
             worst = worst.max(q.0);
             if q.0 > 1.0 + VERIFY_TOLERANCE {
                 out.push((t, q.0, q.3));
@@ -1413,19 +1449,38 @@ fn steering_geometry(
             if (start..end).any(|k| g.wmax[k] > REST_W) {
                 steer_needed = true;
             }
+            // Where the whole platform is at rest at the path's start or end, the direction
+            // there is the limit of the directions next to it: continued (to second order)
+            // from the nearest steered point, so the steering rate has no step. A wheel held
+            // while the platform moves holds its angle.
+            let at_rest = (start..end).all(|k| g.wmax[k] <= REST_W);
             let blend = if start == 0 {
                 let q = g.geo[first * n + i];
-                Blend {
-                    a: 0.0,
-                    b: taus[first],
-                    coef: [q.angle, 0.0, 0.0, 0.0, 0.0, 0.0],
-                }
+                let h = taus[first];
+                let coef = if at_rest {
+                    [
+                        q.angle - q.rate * h + 0.5 * q.accel * h * h,
+                        q.rate - q.accel * h,
+                        0.5 * q.accel,
+                        0.0,
+                        0.0,
+                        0.0,
+                    ]
+                } else {
+                    [q.angle, 0.0, 0.0, 0.0, 0.0, 0.0]
+                };
+                Blend { a: 0.0, b: h, coef }
             } else if end == points {
                 let q = g.geo[(start - 1) * n + i];
+                let coef = if at_rest {
+                    [q.angle, q.rate, 0.5 * q.accel, 0.0, 0.0, 0.0]
+                } else {
+                    [q.angle, 0.0, 0.0, 0.0, 0.0, 0.0]
+                };
                 Blend {
                     a: taus[start - 1],
                     b: taus[points - 1],
-                    coef: [q.angle, 0.0, 0.0, 0.0, 0.0, 0.0],
+                    coef,
                 }
             } else {
                 let (q0, q1) = (g.geo[(start - 1) * n + i], g.geo[end * n + i]);

@@ -1239,11 +1239,23 @@ impl CycleCore {
         let dt = self.platform.dt();
         self.controller_moved = false;
         let cycle = self.cycle;
+        let dfl = self.cfg.controller == ControllerKind::Dfl;
+        let platform = &self.platform;
         let r0 = match &mut self.source {
             Source::Trajectory(s) => {
                 s.track_start_cycle = Some(cycle);
-                s.terminal_active = false;
-                s.traj.sample(0.0)
+                let r0 = s.traj.sample(0.0);
+                // A reference that starts from rest (slower than the DFL's ε, which it
+                // cannot leave on its own) starts with the kinematic controller; the DFL
+                // takes over once the reference moves (seed 000's persistence start, ε,
+                // starts with the DFL).
+                let mut v0 = 0.0f64;
+                for i in 0..platform.n().min(MAX_WHEELS) {
+                    let u = crate::limits::contact_kinematics(platform, i, &r0)[0];
+                    v0 = v0.max(u[0].hypot(u[1]));
+                }
+                s.terminal_active = dfl && v0 < crate::dfl::EPSILON;
+                r0
             }
             Source::Live(l) => {
                 l.dfl_active = false;
@@ -1262,8 +1274,10 @@ impl CycleCore {
             reference: &r0,
         };
         match &self.source {
-            Source::Trajectory(_) => self.controller.step(&self.platform, &input).command,
-            Source::Live(_) => self.kinematic.step(&self.platform, &input).command,
+            Source::Trajectory(s) if !s.terminal_active => {
+                self.controller.step(&self.platform, &input).command
+            }
+            _ => self.kinematic.step(&self.platform, &input).command,
         }
     }
 
