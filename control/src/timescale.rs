@@ -1,6 +1,7 @@
 //! Time scaling of pre-planned trajectories (seed 004's remedy for references the actuators
 //! cannot follow: keep the path, slow its execution), and the time-optimal timing of
-//! waypoints given without times.
+//! waypoints given without times. The derivation in full, with a figure:
+//! docs/time-scaling.md.
 //!
 //! # The scaled reference
 //!
@@ -14,76 +15,86 @@
 //! z⃛ = z*''' ṡ³ + 3 z*'' ṡ s̈ + z*' s⃛
 //! ```
 //!
-//! The path is unchanged; only its timing stretches. ṡ is continuous, s̈ continuous and s⃛
-//! bounded, so z is C² with bounded jerk wherever z* is, as the DFL of seed 000 needs
-//! (its feed-forward is z̈*, seed 000 eq. 25).
+//! The path is unchanged; only its timing stretches. ṡ and s̈ are continuous and s⃛ bounded,
+//! so z is C² with bounded jerk wherever z* is, as the DFL of seed 000 needs (its
+//! feed-forward is z̈*, seed 000 eq. 25).
 //!
 //! # What a timing asks of the actuators
 //!
 //! Wheel i's contact velocity is linear in ż for a given z ([`crate::limits`], seed 000 eq.
 //! 18), so along the scaled reference u_i = w_i ṡ with w_i(τ) the contact velocity of the
-//! nominal path at ṡ = 1 (and w_i', w_i'' its τ-derivatives, [`contact_kinematics`] of the
+//! nominal path at ṡ = 1 (w_i', w_i'' its τ-derivatives: [`contact_kinematics`] of the
 //! nominal sample). Its direction φ_i = atan2(w_i) does not depend on the timing. With
-//! φ' = dφ/dτ and φ'' from [`direction_rates`] (the same formulas as the steering rate and
-//! acceleration, in τ), every actuator's demand is linear in ṡ, or in (x, s̈) with x = ṡ²:
+//! φ' = dφ/dτ and φ'' from [`direction_rates`] (the limits module's steering rate and
+//! acceleration formulas, in τ), every demand is linear in ṡ, in x = ṡ², or in (x, s̈):
 //!
 //! ```text
-//! wheel speed          |w| ṡ / r                          ≤ f_v ω_max
-//! steering rate        |φ'| ṡ                             ≤ f_v φ̇_max
-//! leg speed            |λ'| ṡ                             ≤ f_v λ̇_max
-//! wheel acceleration   |(w·w'/|w|) x + |w| s̈| / r         ≤ f_a ω̇_max
-//! steering accel.      |φ'' x + φ' s̈|                     ≤ f_a φ̈_max
+//! wheel speed           |w| ṡ / r                     ≤ f_v ω_max
+//! steering rate         |φ'| ṡ                        ≤ f_v φ̇_max
+//! leg speed             |λ'| ṡ                        ≤ f_v λ̇_max
+//! lateral acceleration  |w| |φ'| x                    ≤ a_lat
+//! wheel acceleration    |(w·w'/|w|) x + |w| s̈| / r    ≤ f_a ω̇_max
+//! steering accel.       |φ'' x + φ' s̈|                ≤ f_a φ̈_max
 //! ```
 //!
-//! f_v and f_a are the margins ([`TimeScaleConfig`]): the live-command shaper's
-//! `speed_fraction` (0.9) and `accel_fraction` (0.6) by default, for the same reasons
-//! ([`crate::shaper::ShaperConfig`]): the controller's corrections need room, and the drives'
-//! lag compensation adds τ_drive × the reference's jerk to the commanded acceleration.
+//! The margins ([`TimeScaleConfig`]): f_v = 0.9, the live-command shaper's `speed_fraction`
+//! (the controller's corrections and the drives' lag compensation need room); f_a = 0.5 and
+//! a_lat = 0.5 m/s², measured: the residual lag of the steering and rolling drives turns
+//! sustained acceleration and turning into tracking error, and with these the lockstep runs
+//! stay within the issue's bounds with room to spare (docs/time-scaling.md, "Margins").
+//!
+//! At its start and end the platform stands still with its steering at rest, so there the
+//! steering rate |φ'| ṡ may be at most one control cycle's change at the acceleration share
+//! (f_a φ̈_max Δt): a path whose wheels turn as they leave rest starts with ṡ near 0 and
+//! speeds up within the steering acceleration.
 //!
 //! # Planning (TOPP on a grid)
 //!
-//! 1. **Grid.** τ_j = j Δτ (Δτ ≈ 2 ms, at most [`MAX_GRID`] points); at each point the
-//!    speed constraints and a cap give an upper bound x̄_j on x (the *maximum velocity
-//!    curve*); a pair of acceleration constraints k, l whose admissible s̈ intervals
-//!    [L_k(x), U_k(x)] and [L_l(x), U_l(x)] no longer overlap bounds x too (a path
-//!    curvature that needs steering acceleration at any speed). The cap is 1 where the
-//!    trajectory's timing is given (the scaling only slows down) and
-//!    [`TimeScaleConfig::free_scale_cap`] where it is free (waypoints without a time).
+//! 1. **Grid.** τ_j every 2 ms ([`GRID_STEP`]; at most [`MAX_GRID`] points), refined where a
+//!    wheel's direction turns by more than 0.1 rad between two points or its contact
+//!    velocity passes close to zero between them (the linearised closest approach, as the
+//!    shaper refines its transitions). At each point the speed-type constraints and a cap
+//!    bound x (the *maximum velocity curve* x̄_j); so do two acceleration constraints whose
+//!    admissible s̈ intervals [L(x), U(x)] stop overlapping (a path whose curvature needs
+//!    steering acceleration at any speed). The cap is 1 where the trajectory's timing is
+//!    given (the scaling only slows down) and [`TimeScaleConfig::free_scale_cap`] where it
+//!    is free (waypoints without a time).
 //! 2. **Backward pass.** With constant s̈ on [τ_j, τ_{j+1}], x_{j+1} = x_j + 2 Δτ s̈. The
-//!    largest x_j from which the next point can still be reached below its bound K_{j+1}
+//!    largest x_j from which the next point can still be reached below its bound K_{j+1},
 //!    decelerating as hard as allowed: K_N = x̄_N and
-//!    `K_j = max { x ≤ x̄_j : x + 2 Δτ L_j(x) ≤ K_{j+1} }`, where L_j(x) = max_k (p_k + q_k x)
-//!    is affine per constraint, so each constraint gives the closed form
+//!    `K_j = max { x ≤ x̄_j : x + 2 Δτ L_j(x) ≤ K_{j+1} }`. L_j(x) = max_k (p_k + q_k x) is a
+//!    maximum of affine functions, so each constraint gives the closed form
 //!    x ≤ (K_{j+1} − 2 Δτ p_k)/(1 + 2 Δτ q_k) (when the denominator is positive; otherwise
-//!    the constraint never binds, as L_k(0) ≤ 0).
-//! 3. **Forward pass.** From x_0 = K_0, accelerate as hard as allowed without leaving the
+//!    the constraint cannot bind, as L_k(0) ≤ 0).
+//! 3. **Forward pass.** From x_0 = K_0, accelerate as hard as allowed within the
 //!    controllable bounds: x_{j+1} = min(K_{j+1}, x_j + 2 Δτ U_j(x_j)). This is the
-//!    time-optimal x(τ) on the grid (the classic numerical-integration TOPP; with one
-//!    path parameter and constraints affine in (x, s̈) the reachability sets of TOPP-RA
-//!    reduce to these two passes).
-//! 4. **Smoothing (jerk limit).** y = √x has a continuous slope only where x does; its
-//!    kinks would make s̈ jump. y is first *eroded* (the minimum over a window of width W
-//!    in τ) and then averaged over the same window: every averaged value is a mean of
-//!    minima over windows that contain the point itself, so the smooth profile never
-//!    exceeds the time-optimal one (all speed constraints hold exactly at the grid
-//!    points), its slope is continuous and its curvature bounded (s̈ continuous, s⃛
-//!    bounded). W = `jerk_time` × the largest ṡ, so accelerations build up over at least
-//!    `jerk_time` (40 ms, the shaper's). The acceleration constraints hold up to the
-//!    variation of their coefficients within a window.
-//! 5. **Clock.** t_j from dt = dτ/ṡ (exact for ṡ linear in τ between grid points); the
-//!    clock is the quintic Hermite interpolant of (τ_j, ṡ_j, s̈_j) at the t_j: τ(t) is C²
-//!    with bounded s⃛ and meets every knot exactly.
-//! 6. **Verification and repair.** The scaled reference is evaluated (with the limits.rs
-//!    formulas, [`wheel_demand`]) at every knot and three points between each two; where a
-//!    demand exceeds its share f·limit by more than [`VERIFY_TOLERANCE`], x̄ is lowered
-//!    around that point (by the ratio, squared for speed-type limits) and steps 2–6 run
-//!    again (at most [`MAX_REPAIRS`] times).
+//!    time-optimal x(τ) on the grid (the numerical-integration form of TOPP; with one path
+//!    parameter and constraints affine in (x, s̈) the reachable and controllable sets of
+//!    TOPP-RA are these intervals). The passes plan with 90 % of the acceleration shares,
+//!    room for the smoothing.
+//! 4. **Smoothing (jerk limit).** The time-optimal ṡ is piecewise linear in its own time t'
+//!    (s̈ constant per interval), so s̈ jumps. It is *eroded* (the minimum over a window of
+//!    `jerk_time` plus one sample in t', exact for the piecewise-linear profile) and then
+//!    averaged over `jerk_time`: every averaged value is a mean of minima over windows that
+//!    contain the point, so the result never exceeds the time-optimal ṡ (every speed-type
+//!    constraint holds exactly at the grid points), and s̈ becomes continuous, building up
+//!    over at least `jerk_time` (40 ms, the shaper's). The result is read back as ṡ_j at
+//!    the grid points (a profile in τ: the speed bounds are bounds in τ).
+//! 5. **Clock.** Executed times t_j from dt = dτ/ṡ (ṡ² linear in τ between grid points),
+//!    s̈_j = ṡ_j dṡ/dτ; the clock is the quintic Hermite interpolant of (τ_j, ṡ_j, s̈_j) at
+//!    the t_j: τ(t) is C² with bounded s⃛ and meets every knot exactly.
+//! 6. **Verification and repair.** Every demand is evaluated at every grid point and at three
+//!    points between each two (from the inner sample and the clock by the chain rule, the same numbers as
+//!    [`crate::limits::wheel_demand`] of the scaled sample). Where one exceeds its share by more than
+//!    [`VERIFY_TOLERANCE`], x̄ is lowered over the path within twice the jerk time of it (by
+//!    the ratio, squared for speed-type limits) and steps 2–6 run again, at most
+//!    [`MAX_REPAIRS`] times. [`Timing::max_ratio`] reports what remains.
 //!
 //! **Bit-identical when nothing saturates.** If the smooth profile is ṡ ≡ 1 exactly, the
 //! scaled trajectory passes every sample of the inner one through unchanged (τ = t, no
 //! re-accumulation): the seed-000 experiment sends the same commands, bit for bit.
 //!
-//! # Steering the wheels the ICR rests on
+//! # Steering: the wheels the ICR rests on, stops, branches
 //!
 //! Where a wheel barely moves compared with the fastest wheel (|w_i| < `hold_ratio` · max_k
 //! |w_k|: the ICR on or next to it, a pivot about it) its direction of travel is not worth
@@ -93,26 +104,30 @@
 //! across keeps its angle and reverses its roll direction, and a wheel the platform pivots
 //! about holds its angle. Elsewhere the angle is the direction of travel, continued across
 //! the branches (a wheel whose contact velocity passes through zero along a line keeps its
-//! angle and rolls backwards after). When a trajectory has such a stretch while the platform
-//! moves, the samples carry this angle and its rate and acceleration as the
-//! [`SteerReference`], which the controllers follow for wheels slower than
-//! [`crate::limits::HOLD_SPEED`] ([`crate::dfl::held_wheels`]): the wheel neither chatters
-//! nor flips. The blend's rate and acceleration are limited like any other steering demand.
+//! angle and rolls backwards after); where the whole platform is at rest at the path's start
+//! or end it is the limit of the directions next to it. The samples carry this angle, its
+//! rate and its acceleration as the [`SteerReference`] (whenever the clock is not ṡ ≡ 1,
+//! and whenever a wheel is held while the platform moves or the platform stops between two
+//! motions). The controllers follow it for wheels slower than [`crate::limits::HOLD_SPEED`]
+//! ([`crate::dfl::held_wheels`]), so such a wheel neither chatters nor flips, nor turns
+//! after the feedback's corrections near rest. The blends' rates and accelerations are
+//! limited like any other steering demand.
 //!
 //! # What no timing can fix
 //!
-//! [`ScaledTrajectory::plan`] refuses, naming the waypoint (when the trajectory has
-//! waypoints) and the cause: a leg outside its range, and a kink in the direction of travel
-//! of a moving wheel (the direction jumps while the wheel rolls: an infinite steering rate
-//! at any speed). The quintic splines of [`crate::trajectory`] are C², so their wheels'
-//! directions only jump where the wheel's contact velocity passes through zero, which is a
-//! roll reversal, not a kink; other trajectories are checked. A timing that would take
-//! longer than [`MAX_EXECUTED_S`] is refused too.
+//! [`ScaledTrajectory::plan`] (and [`check_fixable`]) refuses, naming the waypoint when the
+//! trajectory has waypoints, and the cause: a leg outside its range, and a kink in the
+//! direction of travel of a moving wheel (the direction jumps while the wheel rolls: an
+//! infinite steering rate at any speed). The quintic splines of [`crate::trajectory`] are
+//! C², so their wheels' directions only jump where the wheel's contact velocity passes
+//! through zero, which is a roll reversal, not a kink; other trajectories are checked
+//! (bisection of a suspicious interval: a jump that does not shrink with it is a kink). A
+//! timing that would take longer than [`MAX_EXECUTED_S`] is refused too, naming the limit.
 
 // Index loops over parallel per-wheel arrays read better than zipped iterators here.
 #![allow(clippy::needless_range_loop)]
 
-use crate::limits::{contact_kinematics, direction_rates};
+use crate::limits::{contact_kinematics, direction_rates, HOLD_SPEED};
 use crate::platform::Platform;
 use crate::ports::Limiting;
 use crate::trajectory::{eval_quintic, quintic, Trajectory};
@@ -146,7 +161,8 @@ const REFINE_MAX: usize = 64;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TimeScaleConfig {
     /// Fraction of the speed-type limits (wheel speed, steering rate, leg speed) the scaled
-    /// reference may use. Default: the shaper's `speed_fraction` (0.9).
+    /// reference may use. Default: the shaper's `speed_fraction` (0.9): the controller's
+    /// corrections and the drives' lag compensation need the rest.
     pub speed_fraction: f64,
     /// Fraction of the acceleration limits (wheel, steering) it may use. Default 0.5, below
     /// the shaper's 0.6: a live command's transitions are straight lines in velocity space
@@ -775,7 +791,7 @@ impl ScaledTrajectory {
                     .unwrap_or(0);
                 return Err(too_slow(p, &cfg, inner.as_ref(), &grid, n, j, est));
             }
-            let ys = smooth_in_time(taus, &x, cfg.jerk_time);
+            let (ys, ka) = smooth_in_time(taus, &x, cfg.jerk_time);
             let pass = ys.iter().all(|&v| v == 1.0);
             // The steering reference goes with every scaled trajectory, and with one that
             // passes through unchanged where a wheel is held while the platform moves or the
@@ -808,7 +824,7 @@ impl ScaledTrajectory {
                 },
             };
             if !pass {
-                st.set_clock(taus, ys);
+                st.set_clock(taus, ys, ka);
             }
             let violations = st.verify(&cfg, taus, &grid.caps);
             if violations.is_empty() || round == MAX_REPAIRS {
@@ -839,28 +855,17 @@ impl ScaledTrajectory {
         }
     }
 
-    /// The clock knots from ṡ per grid point: executed times by dt = dτ/ṡ, s̈ = ṡ dṡ/dτ.
-    fn set_clock(&mut self, taus: &[f64], ys: Vec<f64>) {
+    /// The clock knots from ṡ and s̈ per grid point: executed times by dt = dτ/ṡ.
+    fn set_clock(&mut self, taus: &[f64], ys: Vec<f64>, ka: Vec<f64>) {
         let points = taus.len();
         let mut kt = Vec::with_capacity(points);
         let mut t = 0.0;
         for j in 0..points {
             if j > 0 {
-                t += segment_time(taus[j] - taus[j - 1], ys[j - 1], ys[j]);
+                t += knot_time(taus[j] - taus[j - 1], ys[j - 1], ys[j], ka[j - 1], ka[j]);
             }
             kt.push(t);
         }
-        let ka: Vec<f64> = (0..points)
-            .map(|j| {
-                let (a, b) = (j.saturating_sub(1), (j + 1).min(points - 1));
-                let slope = if b > a {
-                    (ys[b] - ys[a]) / (taus[b] - taus[a])
-                } else {
-                    0.0
-                };
-                ys[j] * slope
-            })
-            .collect();
         self.executed = t;
         self.kt = kt;
         self.ktau = taus.to_vec();
@@ -991,7 +996,7 @@ impl ScaledTrajectory {
 
     /// Largest demand over its share at one instant, from the inner sample `r` at the
     /// clock's τ and the clock (the chain rule of the module docs; the same as
-    /// [`wheel_demand`] of the scaled sample, test `demands_match_the_scaled_samples`):
+    /// [`crate::limits::wheel_demand`] of the scaled sample, test `demands_match_the_scaled_samples`):
     /// (ratio, limit, wheel, speed-type).
     fn ratio(
         &self,
@@ -1100,13 +1105,17 @@ impl ScaledTrajectory {
             q
         };
         for (j, &t) in kt.iter().enumerate() {
-            let (_, what, wheel, _) = check(t);
+            let (ratio, what, wheel, _) = check(t);
             if let Some(&t1) = kt.get(j + 1) {
-                check(0.5 * (t + t1));
+                for q in 1..4 {
+                    check(t + (t1 - t) * q as f64 / 4.0);
+                }
             }
             let v = if self.pass { 1.0 } else { self.kv[j] };
             reason.push((what, wheel as u8, v < caps[j] * (1.0 - 1e-9)));
-            if v < min.0 {
+            // Where the path asks nothing of any actuator (the platform at rest) the clock's
+            // rate means nothing: the slowest scale is taken where something moves.
+            if v < min.0 && ratio > 0.0 {
                 min = (v, t, what, wheel);
             }
         }
@@ -1150,6 +1159,29 @@ fn interior_stop(wmax: &[f64]) -> bool {
         }
     }
     false
+}
+
+/// The time (s) between two clock knots Δτ apart with (ṡ, s̈) = (v0, a0) and (v1, a1): the
+/// one for which ṡ is the cubic Hermite between them, Δτ = Δt (v0 + v1)/2 + Δt² (a0 − a1)/12
+/// (so the quintic clock through the knots does not wiggle to make up a different Δτ);
+/// [`segment_time`] where that has no positive root.
+fn knot_time(dtau: f64, v0: f64, v1: f64, a0: f64, a1: f64) -> f64 {
+    let guess = segment_time(dtau, v0, v1);
+    let (qa, qb, qc) = ((a0 - a1) / 12.0, 0.5 * (v0 + v1), -dtau);
+    if qa.abs() * guess <= 1e-12 * qb {
+        return guess;
+    }
+    let disc = qb * qb - 4.0 * qa * qc;
+    if !(disc >= 0.0) {
+        return guess;
+    }
+    // The root near the trapezoid's, in the form that stays accurate for small qa.
+    let root = 2.0 * dtau / (qb + disc.sqrt());
+    if root.is_finite() && root > 0.0 && (root - guess).abs() < 0.5 * guess {
+        root
+    } else {
+        guess
+    }
 }
 
 /// Time (s) to advance `dtau` with ṡ going from `y0` to `y1`, ṡ² linear in τ (constant s̈).
@@ -1198,15 +1230,84 @@ fn topp(pts: &[Point], fix: &[f64], taus: &[f64]) -> Vec<f64> {
     x
 }
 
+/// A function sampled every `h` from 0, linear between the samples and held beyond the ends.
+struct Sampled {
+    vals: Vec<f64>,
+    h: f64,
+    /// ∫₀^{t_m} (trapezoids, exact for the linear pieces).
+    cum: Vec<f64>,
+}
+
+impl Sampled {
+    fn new(vals: Vec<f64>, h: f64) -> Self {
+        let mut cum = Vec::with_capacity(vals.len());
+        cum.push(0.0);
+        for m in 1..vals.len() {
+            cum.push(cum[m - 1] + 0.5 * (vals[m - 1] + vals[m]) * h);
+        }
+        Self { vals, h, cum }
+    }
+
+    fn at(&self, t: f64) -> f64 {
+        let n = self.vals.len();
+        if t <= 0.0 {
+            return self.vals[0];
+        }
+        let m = ((t / self.h).floor() as usize).min(n - 1);
+        if m + 1 >= n {
+            return self.vals[n - 1];
+        }
+        let f = (t - m as f64 * self.h) / self.h;
+        self.vals[m] + (self.vals[m + 1] - self.vals[m]) * f
+    }
+
+    fn integral(&self, t: f64) -> f64 {
+        let n = self.vals.len();
+        if t <= 0.0 {
+            return self.vals[0] * t;
+        }
+        let m = ((t / self.h).floor() as usize).min(n - 1);
+        let d = t - m as f64 * self.h;
+        if m + 1 >= n {
+            return self.cum[n - 1] + self.vals[n - 1] * d;
+        }
+        self.cum[m] + d * 0.5 * (self.vals[m] + self.at(t))
+    }
+
+    /// The average over [t − w/2, t + w/2] and its derivative in t; exactly the value where
+    /// every sample the window touches is the same.
+    fn box_avg(&self, t: f64, w: f64) -> (f64, f64) {
+        let (a, b) = (t - 0.5 * w, t + 0.5 * w);
+        let n = self.vals.len();
+        let ma = ((a / self.h).floor().max(0.0) as usize).min(n - 1);
+        let mb = ((b / self.h).ceil().max(0.0) as usize).min(n - 1);
+        let win = &self.vals[ma..=mb];
+        let lo = win.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = win.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        if lo == hi {
+            return (lo, 0.0);
+        }
+        (
+            ((self.integral(b) - self.integral(a)) / w).clamp(lo, hi),
+            (self.at(b) - self.at(a)) / w,
+        )
+    }
+}
+
 /// The smoothing of the time-optimal profile (module docs): ṡ as a function of its own time
-/// (linear within each grid interval, s̈ constant there), eroded over a window of
-/// `jerk_time` plus one sample and averaged over `jerk_time`, read back at the grid points.
-/// Never above the time-optimal ṡ at a grid point; exactly 1 where that is 1 throughout.
-fn smooth_in_time(taus: &[f64], x: &[f64], jerk_time: f64) -> Vec<f64> {
+/// t' (linear within each grid interval, s̈ constant there) is eroded over a window of
+/// `jerk_time` plus two samples either side, then averaged twice over `jerk_time` (a
+/// triangular kernel: s̈ continuous and building up over at least `jerk_time`), and read back
+/// at the grid points with its exact slope. Returns (ṡ_j, s̈_j) per grid point, s̈ in the
+/// executed time: s̈ = dṡ/dτ ṡ = (dṡ/dt') ṡ / ṡ_topp. Never above the time-optimal ṡ at a
+/// grid point (every value averaged for time t comes from an erosion window containing t);
+/// exactly 1 (and s̈ = 0) where that is 1 throughout the window.
+fn smooth_in_time(taus: &[f64], x: &[f64], jerk_time: f64) -> (Vec<f64>, Vec<f64>) {
     let points = taus.len();
     let y: Vec<f64> = x.iter().map(|v| v.sqrt()).collect();
+    let flat = (y.clone(), vec![0.0; points]);
     if points < 2 {
-        return y;
+        return flat;
     }
     let mut tt = Vec::with_capacity(points);
     let mut t = 0.0;
@@ -1218,79 +1319,56 @@ fn smooth_in_time(taus: &[f64], x: &[f64], jerk_time: f64) -> Vec<f64> {
     }
     let total = t;
     if !(total > 0.0) {
-        return y;
+        return flat;
     }
     let h = (jerk_time / 8.0).max(total / (4 * MAX_GRID) as f64);
     let half = ((0.5 * jerk_time / h).round() as usize).max(1);
+    let width = 2.0 * half as f64 * h;
     let samples = (total / h).ceil() as usize + 1;
-    // ṡ of the time-optimal profile at time t (linear within each interval).
+    // ṡ of the time-optimal profile at time t' in interval j (linear within it).
     let sdot = |t: f64, j: usize| -> f64 {
         if j + 1 >= points {
             return y[points - 1];
         }
         let dt = tt[j + 1] - tt[j];
-        if dt <= 0.0 {
+        if dt <= 0.0 || y[j] == y[j + 1] {
             return y[j];
         }
         let f = ((t - tt[j]) / dt).clamp(0.0, 1.0);
-        if y[j] == y[j + 1] {
-            y[j]
-        } else {
-            y[j] + (y[j + 1] - y[j]) * f
-        }
+        y[j] + (y[j + 1] - y[j]) * f
     };
     let seg = |t: f64| tt.partition_point(|&x| x <= t).clamp(1, points) - 1;
-    let ts: Vec<f64> = (0..samples).map(|m| (m as f64 * h).min(total)).collect();
-    // Erosion: the minimum of the piecewise-linear ṡ over [t − w, t + w] is at the window's
-    // ends or at a grid point inside.
-    let w = (half + 1) as f64 * h;
-    let eroded: Vec<f64> = ts
-        .iter()
-        .map(|&t| {
+    // Erosion at the samples: the minimum of the piecewise-linear ṡ over [t − w, t + w] is at
+    // the window's ends or at a grid point inside.
+    let w = width + 2.0 * h;
+    let eroded: Vec<f64> = (0..samples)
+        .map(|m| {
+            let t = m as f64 * h;
             let (a, b) = ((t - w).max(0.0), (t + w).min(total));
             let (ja, jb) = (seg(a), seg(b));
-            let mut m = sdot(a, ja).min(sdot(b, jb));
+            let mut v = sdot(a, ja).min(sdot(b, jb));
             for j in ja + 1..=jb.min(points - 1) {
-                m = m.min(y[j]);
+                v = v.min(y[j]);
             }
-            m
+            v
         })
         .collect();
-    let smooth: Vec<f64> = (0..samples)
-        .map(|m| {
-            let lo = m.saturating_sub(half);
-            let hi = (m + half).min(samples - 1);
-            let win = &eroded[lo..=hi];
-            let mn = win.iter().copied().fold(f64::INFINITY, f64::min);
-            let mx = win.iter().copied().fold(0.0, f64::max);
-            if mn == mx {
-                mn
-            } else {
-                // Windows cut by the ends count their end value again (the profile held).
-                let extra = (2 * half + 1) - win.len();
-                let pad = if m < half {
-                    eroded[0]
-                } else {
-                    eroded[samples - 1]
-                };
-                let sum: f64 = win.iter().sum::<f64>() + pad * extra as f64;
-                (sum / (2 * half + 1) as f64).clamp(mn.min(pad), mx.max(pad))
-            }
-        })
-        .collect();
-    (0..points)
-        .map(|j| {
-            let t = tt[j];
-            let m = ((t / h).floor() as usize).min(samples - 1);
-            let v = if m + 1 >= samples || smooth[m] == smooth[m + 1] {
-                smooth[m]
-            } else {
-                let f = ((t - ts[m]) / (ts[m + 1] - ts[m])).clamp(0.0, 1.0);
-                smooth[m] + (smooth[m + 1] - smooth[m]) * f
-            };
-            v.min(y[j])
-        })
-        .collect()
+    let e = Sampled::new(eroded, h);
+    let first = Sampled::new(
+        (0..samples)
+            .map(|m| e.box_avg(m as f64 * h, width).0)
+            .collect(),
+        h,
+    );
+    let mut ys = Vec::with_capacity(points);
+    let mut accel = Vec::with_capacity(points);
+    for j in 0..points {
+        let (v, slope) = first.box_avg(tt[j], width);
+        let v = v.min(y[j]);
+        ys.push(v);
+        accel.push(if y[j] > 0.0 { slope * v / y[j] } else { 0.0 });
+    }
+    (ys, accel)
 }
 
 /// The refusal for a timing that would last too long, naming the binding speed limit at the
@@ -1351,10 +1429,35 @@ fn steering_geometry(
     };
     let mut steer_needed = false;
     for i in 0..n {
+        // Points held only because the wheel never reaches HOLD_SPEED there (the controllers
+        // hold it by themselves; they need no steering reference for it).
+        let mut slow_hold = vec![false; points];
+        // Held until the wheel moves faster than twice `hold_ratio` of the fastest wheel,
+        // steered until it is slower than `hold_ratio` (hysteresis: a wheel whose speed
+        // hovers about the threshold, like the pivot wheel of a pivot through waypoints,
+        // whose contact point moves by the spline's interpolation error, neither toggles).
+        let mut steered = false;
         for j in 0..points {
             let wmax = g.wmax[j];
             let q = &mut g.geo[j * n + i];
-            q.defined = wmax > REST_W && q.speed >= cfg.hold_ratio * wmax && q.speed > 0.0;
+            if wmax <= REST_W || q.speed <= 0.0 {
+                q.defined = false;
+                continue;
+            }
+            let ratio = q.speed / wmax;
+            steered = if steered {
+                ratio >= cfg.hold_ratio
+            } else {
+                ratio >= 2.0 * cfg.hold_ratio
+            };
+            // A wheel is steered by its direction of travel unless it barely moves compared
+            // with the platform (above), or never moves faster than HOLD_SPEED here while the
+            // platform moves clearly (the controllers hold such a wheel anyway: it follows the
+            // steering reference).
+            let cap = g.caps[j];
+            let slow = q.speed * cap < HOLD_SPEED && wmax * cap >= 2.0 * HOLD_SPEED;
+            slow_hold[j] = slow && steered;
+            q.defined = steered && !slow;
         }
         // Continue the direction of travel across branches over the defined points.
         let mut prev: Option<(usize, f64, f64)> = None; // (j, angle, rate)
@@ -1446,7 +1549,7 @@ fn steering_geometry(
                 j += 1;
             }
             let end = j;
-            if (start..end).any(|k| g.wmax[k] > REST_W) {
+            if (start..end).any(|k| g.wmax[k] > REST_W && !slow_hold[k]) {
                 steer_needed = true;
             }
             // Where the whole platform is at rest at the path's start or end, the direction
@@ -1590,10 +1693,11 @@ impl Trajectory for ScaledTrajectory {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::limits::wheel_demand;
     use crate::trajectory::{QuinticSpline, Waypoint, WaypointSpec};
     use crate::types::ZVec;
 
-    fn wp(t: f64, x: f64, y: f64, th: f64, legs: [f64; 4]) -> Waypoint {
+    fn z(x: f64, y: f64, th: f64, legs: [f64; 4]) -> ZVec {
         let mut z = ZVec::zeros();
         z[0] = x;
         z[1] = y;
@@ -1601,58 +1705,559 @@ mod tests {
         for i in 0..4 {
             z[3 + i] = legs[i];
         }
-        Waypoint { t, z }
+        z
+    }
+
+    /// Far beyond the limits: 1.1 m, 1.5 rad and legs limit to limit in 2 s, then on.
+    pub(crate) fn fast_pub() -> Vec<Waypoint> {
+        fast()
+    }
+
+    fn fast() -> Vec<Waypoint> {
+        let l = [0.45; 4];
+        vec![
+            Waypoint {
+                t: 0.0,
+                z: z(0.0, 0.0, 0.0, l),
+            },
+            Waypoint {
+                t: 2.0,
+                z: z(1.0, 0.5, 1.5, [0.56, 0.37, 0.56, 0.37]),
+            },
+            Waypoint {
+                t: 3.5,
+                z: z(1.5, 1.5, 0.0, l),
+            },
+            Waypoint {
+                t: 5.0,
+                z: z(0.5, 1.0, -1.0, [0.56, 0.37, 0.56, 0.37]),
+            },
+        ]
+    }
+
+    fn plan(w: &[Waypoint]) -> ScaledTrajectory {
+        let p = Platform::justin();
+        let s = QuinticSpline::new(&p, w).expect("valid waypoints");
+        ScaledTrajectory::plan(&p, Box::new(s), TimeScaleConfig::default()).expect("plannable")
     }
 
     #[test]
-    fn explore() {
+    fn seed000_passes_through_bit_for_bit() {
         let p = Platform::justin();
-        let seed = crate::trajectory::seed000_experiment(&p);
-        let t0 = std::time::Instant::now();
-        let s = ScaledTrajectory::plan(&p, Box::new(seed), TimeScaleConfig::default()).unwrap();
-        println!("seed000 {:?} {:?}", s.timing, t0.elapsed());
-        let l = [0.45; 4];
-        let w = vec![
-            wp(0.0, 0.0, 0.0, 0.0, l),
-            wp(2.0, 1.0, 0.5, 1.5, [0.5, 0.4, 0.5, 0.4]),
-            wp(3.5, 1.5, 1.5, 0.0, l),
-            wp(5.0, 0.5, 1.0, -1.0, [0.56, 0.37, 0.56, 0.37]),
-        ];
-        let sp = QuinticSpline::new(&p, &w).unwrap();
-        let t0 = std::time::Instant::now();
-        let s = ScaledTrajectory::plan(&p, Box::new(sp), TimeScaleConfig::default()).unwrap();
-        println!("fast {:?} {:?}", s.timing, t0.elapsed());
-        {
-            let sp = QuinticSpline::new(&p, &w).unwrap();
-            let cfg = TimeScaleConfig::default();
-            let mut g = Grid::build(&p, &sp, &cfg, 4, sp.duration()).unwrap();
-            let (sg, _) = steering_geometry(&p, &sp, &cfg, 4, &mut g).unwrap();
-            for j in 0..g.points() {
-                let tau = g.taus[j];
-                if tau > 3.36 && tau < 3.54 {
-                    let q0 = g.geo[j * 4];
-                    let q2 = g.geo[j * 4 + 2];
-                    println!("  tau {tau:.4} W {:.3} | w0 {:.4} d{} a{:7.3} r{:9.2} | w2 {:.4} d{} a{:7.3} r{:9.2}", g.wmax[j], q0.speed, q0.defined as u8, q0.angle, q0.rate, q2.speed, q2.defined as u8, q2.angle, q2.rate);
-                }
-            }
-            println!("blends0 {:?}", sg.blends[0]);
-            println!("blends2 {:?}", sg.blends[2]);
+        let inner = crate::trajectory::seed000_experiment(&p);
+        let s = ScaledTrajectory::plan(&p, Box::new(inner), TimeScaleConfig::default()).unwrap();
+        assert!(s.is_pass_through());
+        let t = s.timing().unwrap();
+        assert_eq!(t.executed_duration_s, inner.duration());
+        assert_eq!((t.min_scale, t.limiting), (1.0, Limiting::None));
+        assert!(!t.steer_reference);
+        assert!(
+            t.max_ratio < 0.5,
+            "seed 000 uses {} of its shares",
+            t.max_ratio
+        );
+        for k in 0..=3000 {
+            let tt = k as f64 * 0.0097 - 0.5;
+            assert_eq!(s.sample(tt), inner.sample(tt), "t = {tt}");
         }
-        let mut t = 0.0;
-        while t < s.duration() {
-            let (tau, v, a, _) = s.clock(t);
-            let st = s.time_scale(t).unwrap();
-            println!(
-                "  t {t:6.2} tau {tau:6.3} sdot {v:7.4} sddot {a:8.3} {:?} w{}",
-                st.limiting, st.wheel
+        assert_eq!(s.time_scale(3.0).unwrap().scale, 1.0);
+    }
+
+    #[test]
+    fn a_trajectory_beyond_the_limits_is_stretched_into_its_shares() {
+        let p = Platform::justin();
+        let l = p.limits;
+        let cfg = TimeScaleConfig::default();
+        let w = fast();
+        let inner = QuinticSpline::new(&p, &w).unwrap();
+        // Unscaled it asks far more than the limits allow.
+        let worst = (0..=500)
+            .map(|k| crate::limits::reference_ratio(&p, &inner.sample(k as f64 * 0.01)).0)
+            .fold(0.0, f64::max);
+        assert!(worst > 3.0, "{worst}");
+        let s = plan(&w);
+        let t = s.timing().unwrap();
+        assert!(!s.is_pass_through());
+        assert!(t.executed_duration_s > 5.5, "{t:?}");
+        assert!(t.min_scale < 0.5 && t.limiting != Limiting::None, "{t:?}");
+        assert!(t.steer_reference);
+        // Every actuator within its share (and the tolerance), checked with the limits
+        // module's own function on the scaled samples every 2 ms; the path is unchanged.
+        let tol = 1.0 + VERIFY_TOLERANCE + 1e-6;
+        let mut prev_tau = -1.0;
+        let steps = (t.executed_duration_s / 0.002).ceil() as usize;
+        for k in 0..=steps {
+            let tt = k as f64 * 0.002;
+            let r = s.sample(tt);
+            let (tau, v, _, _) = s.clock(tt);
+            assert!(tau >= prev_tau, "the clock runs forwards");
+            assert!(v <= 1.0 + 1e-9, "a timed trajectory is only slowed down");
+            prev_tau = tau;
+            assert_eq!(
+                r.z,
+                inner.sample(tau).z,
+                "the path is the inner trajectory's"
             );
-            t += 0.25;
+            for i in 0..4 {
+                let d = wheel_demand(&p, i, &r);
+                assert!(
+                    d.speed <= cfg.speed_fraction * l.wheel_speed * tol,
+                    "t {tt} wheel {i} speed {}",
+                    d.speed
+                );
+                assert!(
+                    d.accel.abs() <= cfg.accel_fraction * l.wheel_accel * tol,
+                    "t {tt} wheel {i} accel {}",
+                    d.accel
+                );
+                assert!(d.leg_speed <= cfg.speed_fraction * l.leg_speed * tol);
+                // The steering reference's rate and acceleration: the direction of travel's
+                // where the wheel moves (the same numbers), the blends' where it is held.
+                if d.moving && (r.steer.angle[i] - d.steer_angle).sin().abs() < 1e-6 {
+                    assert!(
+                        (r.steer.rate[i] - d.steer_rate).abs() < 1e-6 * (1.0 + d.steer_rate.abs())
+                    );
+                }
+                assert!(
+                    r.steer.rate[i].abs() <= cfg.speed_fraction * l.steer_rate * tol,
+                    "t {tt} wheel {i} steer rate {}",
+                    r.steer.rate[i]
+                );
+                assert!(
+                    r.steer.accel[i].abs() <= cfg.accel_fraction * l.steer_accel * tol,
+                    "t {tt} wheel {i} steer accel {}",
+                    r.steer.accel[i]
+                );
+                assert!(
+                    d.speed * p.wheel_radius * r.steer.rate[i].abs() <= cfg.lateral_accel * tol
+                );
+            }
         }
-        let specs: Vec<WaypointSpec> = w.iter().map(|w| WaypointSpec { t: None, z: w.z }).collect();
-        let sp = QuinticSpline::from_specs(&p, &specs).unwrap();
-        println!("times {:?}", sp.times());
-        let t0 = std::time::Instant::now();
-        let s = ScaledTrajectory::plan(&p, Box::new(sp), TimeScaleConfig::default()).unwrap();
-        println!("free {:?} {:?}", s.timing, t0.elapsed());
+        let end = s.sample(t.executed_duration_s + 1.0);
+        assert_eq!(end.z, inner.sample(inner.duration()).z);
+        assert!(end.dz.iter().chain(end.ddz.iter()).all(|v| *v == 0.0));
+    }
+
+    #[test]
+    fn the_scaled_reference_is_c2_with_bounded_jerk() {
+        let s = plan(&fast());
+        let d = s.duration();
+        let h = 1e-4;
+        let (mut max_jump_a, mut max_jerk) = (0.0f64, 0.0f64);
+        let mut prev = s.sample(0.0);
+        let mut prev_clock = s.clock(0.0);
+        for k in 1..=(d / h) as usize {
+            let tt = k as f64 * h;
+            let r = s.sample(tt);
+            let c = s.clock(tt);
+            for c_ in 0..7 {
+                // ż is the derivative of z and z̈ of ż (trapezoid over one step).
+                let fd = (r.z[c_] - prev.z[c_]) / h;
+                assert!(
+                    (fd - 0.5 * (r.dz[c_] + prev.dz[c_])).abs() < 2e-4,
+                    "t {tt} dz[{c_}]"
+                );
+                let fd2 = (r.dz[c_] - prev.dz[c_]) / h;
+                assert!(
+                    (fd2 - 0.5 * (r.ddz[c_] + prev.ddz[c_])).abs() < 2e-2,
+                    "t {tt} ddz[{c_}]"
+                );
+                max_jump_a = max_jump_a.max((r.ddz[c_] - prev.ddz[c_]).abs());
+            }
+            // ṡ and s̈ continuous, s⃛ bounded.
+            assert!((c.1 - prev_clock.1).abs() < 1e-3, "ṡ jumps at {tt}");
+            assert!(
+                (c.2 - prev_clock.2).abs() < 2e-2,
+                "s̈ jumps at {tt}: {} → {}",
+                prev_clock.2,
+                c.2
+            );
+            max_jerk = max_jerk.max(c.3.abs());
+            prev = r;
+            prev_clock = c;
+        }
+        assert!(max_jump_a < 0.05, "z̈ continuous: largest step {max_jump_a}");
+        assert!(
+            max_jerk.is_finite() && max_jerk < 500.0,
+            "s⃛ bounded: {max_jerk}"
+        );
+    }
+
+    #[test]
+    fn demands_match_the_scaled_samples() {
+        let s = plan(&fast());
+        let cfg = TimeScaleConfig::default();
+        let p = Platform::justin();
+        for k in 0..400 {
+            let tt = s.duration() * k as f64 / 400.0;
+            let clk = s.clock(tt);
+            let r = s.inner.sample(clk.0);
+            let scaled = s.sample(tt);
+            let (ratio, what, wheel, _) = s.ratio(&cfg, &r, clk);
+            let d = wheel_demand(&p, wheel, &scaled);
+            let direct = match what {
+                Limiting::WheelSpeed => d.speed / (cfg.speed_fraction * p.limits.wheel_speed),
+                Limiting::WheelAccel => d.accel.abs() / (cfg.accel_fraction * p.limits.wheel_accel),
+                Limiting::LegSpeed => d.leg_speed / (cfg.speed_fraction * p.limits.leg_speed),
+                _ => continue,
+            };
+            assert!(
+                (ratio - direct).abs() < 1e-9 * (1.0 + ratio),
+                "{tt}: {ratio} vs {direct}"
+            );
+        }
+    }
+
+    #[test]
+    fn waypoints_without_times_run_as_fast_as_the_limits_allow() {
+        let p = Platform::justin();
+        let w = fast();
+        let free: Vec<WaypointSpec> = w.iter().map(|x| WaypointSpec { t: None, z: x.z }).collect();
+        let inner = QuinticSpline::from_specs(&p, &free).unwrap();
+        assert!(!inner.timed_at(0.5));
+        let s = ScaledTrajectory::plan(&p, Box::new(inner), TimeScaleConfig::default()).unwrap();
+        let t = s.timing().unwrap();
+        assert!(t.max_ratio <= 1.0 + VERIFY_TOLERANCE + 1e-9, "{t:?}");
+        // Time-optimal within the shares: most of the time some actuator is near its share
+        // (the rest is the jerk-limited build-up of accelerations and the start and stop).
+        let n = 1000;
+        let busy = (0..n)
+            .filter(|k| {
+                let tt = t.executed_duration_s * (*k as f64 + 0.5) / n as f64;
+                let clk = s.clock(tt);
+                s.ratio(&TimeScaleConfig::default(), &s.inner.sample(clk.0), clk)
+                    .0
+                    > 0.8
+            })
+            .count();
+        assert!(busy * 10 > n * 7, "near a share {busy} of {n} samples");
+        // The same path with generous times runs as given (ṡ ≡ 1) and takes longer.
+        let slow: Vec<WaypointSpec> = free
+            .iter()
+            .enumerate()
+            .map(|(k, x)| WaypointSpec {
+                t: Some(k as f64 * t.executed_duration_s * 2.0),
+                z: x.z,
+            })
+            .collect();
+        let s2 = ScaledTrajectory::plan(
+            &p,
+            Box::new(QuinticSpline::from_specs(&p, &slow).unwrap()),
+            TimeScaleConfig::default(),
+        )
+        .unwrap();
+        assert!(s2.timing().unwrap().executed_duration_s > 2.0 * t.executed_duration_s);
+    }
+
+    /// Straight segments at constant speed with a corner at t = 1 (no stop): an infinite
+    /// steering rate at any speed.
+    struct Corner;
+    impl Trajectory for Corner {
+        fn sample(&self, t: f64) -> ReferenceSample {
+            let mut r = ReferenceSample {
+                t,
+                n: 4,
+                ..Default::default()
+            };
+            let tc = t.clamp(0.0, 2.0);
+            let (x, y, vx, vy) = if tc < 1.0 {
+                (0.3 * tc, 0.0, 0.3, 0.0)
+            } else {
+                (0.3, 0.3 * (tc - 1.0), 0.0, 0.3)
+            };
+            r.z = z(x, y, 0.0, [0.45; 4]);
+            r.dz[0] = vx;
+            r.dz[1] = vy;
+            r
+        }
+        fn duration(&self) -> f64 {
+            2.0
+        }
+        fn n_legs(&self) -> usize {
+            4
+        }
+        fn waypoint_near(&self, t: f64) -> Option<usize> {
+            Some(t.round().clamp(0.0, 2.0) as usize)
+        }
+    }
+
+    #[test]
+    fn a_corner_without_a_stop_is_refused_naming_the_waypoint() {
+        let p = Platform::justin();
+        let e =
+            ScaledTrajectory::plan(&p, Box::new(Corner), TimeScaleConfig::default()).unwrap_err();
+        match &e {
+            TimeScaleError::SteeringKink {
+                waypoint: Some(1),
+                angle,
+                t,
+                ..
+            } => {
+                assert!(
+                    (angle - std::f64::consts::FRAC_PI_2).abs() < 0.05,
+                    "{angle}"
+                );
+                assert!((t - 1.0).abs() < 0.01, "{t}");
+            }
+            other => panic!("{other:?}"),
+        }
+        let m = e.to_string();
+        assert!(
+            m.contains("waypoints[1]")
+                && m.contains("corner without a stop")
+                && m.contains("90.0°"),
+            "{m}"
+        );
+        assert!(check_fixable(&p, &Corner, &TimeScaleConfig::default()).is_err());
+    }
+
+    /// A leg that runs past its range half-way.
+    struct LegOut;
+    impl Trajectory for LegOut {
+        fn sample(&self, t: f64) -> ReferenceSample {
+            let mut r = ReferenceSample {
+                t,
+                n: 4,
+                ..Default::default()
+            };
+            let l = 0.45 + 0.2 * (t.clamp(0.0, 2.0) * std::f64::consts::FRAC_PI_2).sin();
+            r.z = z(0.0, 0.0, 0.0, [0.45, 0.45, l, 0.45]);
+            r
+        }
+        fn duration(&self) -> f64 {
+            2.0
+        }
+        fn n_legs(&self) -> usize {
+            4
+        }
+        fn waypoint_near(&self, t: f64) -> Option<usize> {
+            Some(t.round() as usize)
+        }
+    }
+
+    #[test]
+    fn a_leg_beyond_its_range_is_refused_naming_the_waypoint_and_leg() {
+        let p = Platform::justin();
+        let e =
+            ScaledTrajectory::plan(&p, Box::new(LegOut), TimeScaleConfig::default()).unwrap_err();
+        assert!(
+            matches!(e, TimeScaleError::LegOutOfRange { leg: 2, .. }),
+            "{e:?}"
+        );
+        let m = e.to_string();
+        assert!(
+            m.contains("leg 3") && m.contains("[0.37, 0.56]") && m.contains("no timing can fix"),
+            "{m}"
+        );
+    }
+
+    #[test]
+    fn a_timing_beyond_ten_hours_is_refused_naming_the_limit() {
+        let mut p = Platform::justin();
+        p.limits.leg_speed = 1e-7;
+        let s = QuinticSpline::new(&p, &fast()).unwrap();
+        let e = ScaledTrajectory::plan(&p, Box::new(s), TimeScaleConfig::default()).unwrap_err();
+        let m = e.to_string();
+        assert!(
+            matches!(
+                e,
+                TimeScaleError::TooSlow {
+                    field: "leg_speed",
+                    ..
+                }
+            ),
+            "{m}"
+        );
+        assert!(
+            m.contains("`limits.leg_speed` = 1.000e-7") && m.contains("36000 s"),
+            "{m}"
+        );
+    }
+
+    /// Waypoints of a pivot about wheel `k`'s contact point by `turn` rad in `secs`.
+    pub(crate) fn pivot(k: usize, turn: f64, secs: f64) -> Vec<Waypoint> {
+        let p = Platform::justin();
+        let (l, a) = (p.wheels[k].lambda_nominal, p.wheels[k].alpha);
+        (0..=8)
+            .map(|q| {
+                let th = turn * q as f64 / 8.0;
+                let (px, py) = (l * a.cos(), l * a.sin());
+                let (wx, wy) = (l * (th + a).cos(), l * (th + a).sin());
+                Waypoint {
+                    t: secs * q as f64 / 8.0,
+                    z: z(px - wx, py - wy, th, [l; 4]),
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_wheel_a_pivot_turns_about_holds_its_steering_angle() {
+        let s = plan(&pivot(1, 1.5, 3.0));
+        assert!(s.timing().unwrap().steer_reference);
+        let first = s.sample(0.0).steer.angle[1];
+        let p = Platform::justin();
+        for k in 0..=200 {
+            let r = s.sample(s.duration() * k as f64 / 200.0);
+            assert!(r.steer.valid);
+            assert!(
+                (r.steer.angle[1] - first).abs() < 1e-9,
+                "held: {} vs {first}",
+                r.steer.angle[1]
+            );
+            assert!(r.steer.rate[1] == 0.0);
+            // The pivot wheel barely moves; the others roll.
+            assert!(wheel_demand(&p, 1, &r).speed * p.wheel_radius < HOLD_SPEED);
+        }
+    }
+
+    #[test]
+    fn a_wheel_the_icr_sweeps_across_reverses_its_roll_and_keeps_its_angle() {
+        // The platform turns at 0.8 rad/s while its ICR moves through wheel 0's contact
+        // point along the leg's normal (sampled into waypoints every 0.25 s).
+        let p = Platform::justin();
+        let (l, a) = (p.wheels[0].lambda_nominal, p.wheels[0].alpha);
+        let wheel = [l * a.cos(), l * a.sin()];
+        let d = [-a.sin(), a.cos()];
+        let mut pose = crate::types::Pose::default();
+        let mut w = vec![Waypoint {
+            t: 0.0,
+            z: z(0.0, 0.0, 0.0, [l; 4]),
+        }];
+        let dt = 0.001;
+        for q in 0..4000 {
+            let s = 0.4 * (2.0 * (q as f64 + 0.5) / 4000.0 - 1.0);
+            let icr = [wheel[0] + d[0] * s, wheel[1] + d[1] * s];
+            let tw = crate::types::Twist {
+                vx: 0.8 * icr[1],
+                vy: -0.8 * icr[0],
+                omega: 0.8,
+            };
+            pose = crate::model::se2_integrate(pose, &tw, dt);
+            if (q + 1) % 250 == 0 {
+                w.push(Waypoint {
+                    t: (q + 1) as f64 * dt,
+                    z: z(pose.x, pose.y, pose.theta, [l; 4]),
+                });
+            }
+        }
+        let s = plan(&w);
+        assert!(s.timing().unwrap().steer_reference);
+        // Across the sweep the wheel's direction of travel turns by about π while its
+        // steering angle moves by far less: it rolls backwards afterwards.
+        let at = |tau: f64| {
+            let t = (0..=20000)
+                .map(|k| s.duration() * k as f64 / 20000.0)
+                .find(|&t| s.clock(t).0 >= tau)
+                .unwrap();
+            let r = s.sample(t);
+            (wheel_demand(&p, 0, &r).steer_angle, r.steer.angle[0])
+        };
+        let (dir0, steer0) = at(1.2);
+        let (dir1, steer1) = at(2.8);
+        let turned = crate::angle::diff(dir1, dir0).abs();
+        assert!(turned > 2.5, "direction of travel turned {turned}");
+        assert!(
+            (steer1 - steer0).abs() < 0.8,
+            "steering moved {} rad",
+            steer1 - steer0
+        );
+        // The roll reversed: the steering angle is on the other branch of the direction.
+        assert!(crate::angle::diff(steer1, dir1).abs() > 2.5);
+        assert!(crate::angle::diff(steer0, dir0).abs() < 0.2);
+    }
+
+    #[test]
+    fn the_time_scale_says_what_limits_it() {
+        let s = plan(&fast());
+        let t = s.timing().unwrap();
+        let st = s.time_scale(t.min_scale_at_s).unwrap();
+        assert!((st.scale - t.min_scale).abs() < 1e-9);
+        assert_eq!((st.limiting, st.wheel), (t.limiting, t.wheel));
+        let after = s.time_scale(t.executed_duration_s + 1.0).unwrap();
+        assert_eq!((after.scale, after.limiting), (1.0, Limiting::None));
+        // From rest and back to rest the steering rate starts and ends within one cycle's
+        // change at the acceleration share.
+        let p = Platform::justin();
+        let r0 = start_steer_rate(&p, &TimeScaleConfig::default());
+        for tt in [0.0, t.executed_duration_s] {
+            let r = s.sample(tt);
+            for i in 0..4 {
+                assert!(
+                    r.steer.rate[i].abs() <= r0 * (1.0 + VERIFY_TOLERANCE),
+                    "{tt}: {:?}",
+                    r.steer.rate
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn seed001s_nominal_needs_more_than_the_steering_limits() {
+        // Why the seed-001 scenario runs unscaled (its avoidance is the experiment).
+        let p = Platform::justin();
+        let inner = crate::avoidance::Seed001Scenario::new(&p);
+        let worst = (0..=2000)
+            .map(|k| {
+                crate::limits::reference_ratio(
+                    &p,
+                    &inner.sample(inner.duration() * k as f64 / 2000.0),
+                )
+            })
+            .fold((0.0, Limiting::None), |a, b| if b.0 > a.0 { b } else { a });
+        assert!(
+            worst.0 > 5.0 && worst.1 == Limiting::SteerAccel,
+            "{worst:?}"
+        );
+        let cfg = crate::scenario::runtime_config(crate::scenario::Scenario::Seed001);
+        assert!(cfg.time_scaling.is_none());
+        assert!(
+            crate::scenario::runtime_config(crate::scenario::Scenario::Seed000)
+                .time_scaling
+                .is_some()
+        );
+    }
+}
+#[cfg(test)]
+mod scratch {
+    use super::*;
+    use crate::trajectory::QuinticSpline;
+    #[test]
+    fn dbg_pivot() {
+        let p = Platform::justin();
+        let w = super::tests::pivot(1, 1.5, 3.0);
+        let s = QuinticSpline::new(&p, &w).unwrap();
+        let cfg = TimeScaleConfig::default();
+        let mut g = Grid::build(&p, &s, &cfg, 4, s.duration()).unwrap();
+        let (sg, st) = steering_geometry(&p, &s, &cfg, 4, &mut g).unwrap();
+        println!("steer {st} blends {:?}", sg.blends[1]);
+        for j in (0..g.points()).step_by(50) {
+            let q = g.geo[j * 4 + 1];
+            println!(
+                "tau {:.3} W {:.4} w1 {:.6} ratio {:.4} defined {} angle {:.4} rate {:.4}",
+                g.taus[j],
+                g.wmax[j],
+                q.speed,
+                q.speed / g.wmax[j],
+                q.defined,
+                q.angle,
+                q.rate
+            );
+        }
+        let st = ScaledTrajectory::plan(&p, Box::new(s), cfg).unwrap();
+        for k in 0..=60 {
+            let t = st.duration() * k as f64 / 60.0;
+            let r = st.sample(t);
+            let d = crate::limits::wheel_demand(&p, 1, &r);
+            println!(
+                "piv t {t:.3} angle {:.4} rate {:.4} speed {:.4} W {:.3}",
+                r.steer.angle[1],
+                r.steer.rate[1],
+                d.speed * p.wheel_radius,
+                (0..4)
+                    .map(|i| crate::limits::wheel_demand(&p, i, &r).speed * p.wheel_radius)
+                    .fold(0.0, f64::max)
+            );
+        }
     }
 }
