@@ -1709,10 +1709,6 @@ mod tests {
     }
 
     /// Far beyond the limits: 1.1 m, 1.5 rad and legs limit to limit in 2 s, then on.
-    pub(crate) fn fast_pub() -> Vec<Waypoint> {
-        fast()
-    }
-
     fn fast() -> Vec<Waypoint> {
         let l = [0.45; 4];
         vec![
@@ -2216,48 +2212,5 @@ mod tests {
                 .time_scaling
                 .is_some()
         );
-    }
-}
-#[cfg(test)]
-mod scratch {
-    use super::*;
-    use crate::trajectory::QuinticSpline;
-    #[test]
-    fn dbg_pivot() {
-        let p = Platform::justin();
-        let w = super::tests::pivot(1, 1.5, 3.0);
-        let s = QuinticSpline::new(&p, &w).unwrap();
-        let cfg = TimeScaleConfig::default();
-        let mut g = Grid::build(&p, &s, &cfg, 4, s.duration()).unwrap();
-        let (sg, st) = steering_geometry(&p, &s, &cfg, 4, &mut g).unwrap();
-        println!("steer {st} blends {:?}", sg.blends[1]);
-        for j in (0..g.points()).step_by(50) {
-            let q = g.geo[j * 4 + 1];
-            println!(
-                "tau {:.3} W {:.4} w1 {:.6} ratio {:.4} defined {} angle {:.4} rate {:.4}",
-                g.taus[j],
-                g.wmax[j],
-                q.speed,
-                q.speed / g.wmax[j],
-                q.defined,
-                q.angle,
-                q.rate
-            );
-        }
-        let st = ScaledTrajectory::plan(&p, Box::new(s), cfg).unwrap();
-        for k in 0..=60 {
-            let t = st.duration() * k as f64 / 60.0;
-            let r = st.sample(t);
-            let d = crate::limits::wheel_demand(&p, 1, &r);
-            println!(
-                "piv t {t:.3} angle {:.4} rate {:.4} speed {:.4} W {:.3}",
-                r.steer.angle[1],
-                r.steer.rate[1],
-                d.speed * p.wheel_radius,
-                (0..4)
-                    .map(|i| crate::limits::wheel_demand(&p, i, &r).speed * p.wheel_radius)
-                    .fold(0.0, f64::max)
-            );
-        }
     }
 }
