@@ -1093,41 +1093,115 @@ legs = [0.45, 0.45, 0.45, 0.50]
         );
         assert!(QuinticSpline::from_toml_str(&p, &file("36000.0")).is_ok());
     }
-}
-#[cfg(test)]
-mod scratch_legs {
-    use super::*;
+
+    fn legs_file(rows: &[(Option<f64>, f64, [f64; 4])]) -> String {
+        rows.iter()
+            .map(|(t, x, l)| {
+                let t = t.map(|t| format!("t = {t}\n")).unwrap_or_default();
+                format!(
+                    "[[waypoints]]\n{t}x = {x}\ny = 0.0\ntheta = 0.0\nlegs = [{}, {}, {}, {}]\n\n",
+                    l[0], l[1], l[2], l[3]
+                )
+            })
+            .collect()
+    }
+
     #[test]
-    fn scratch() {
+    fn waypoints_at_a_leg_limit_are_accepted_and_the_legs_never_leave_their_range() {
         let p = Platform::justin();
-        let mk = |legs: &[f64], ts: &[f64]| {
-            let w: Vec<Waypoint> = legs
+        let cases: [(&[f64], &[f64]); 4] = [
+            (&[0.37, 0.56], &[0.0, 2.0]),
+            (&[0.40, 0.56, 0.56, 0.40], &[0.0, 1.0, 2.5, 3.0]),
+            // Fast up to a waypoint just below the limit, then on to it: the three-point knot
+            // velocity would carry the leg 0.2 mm past λ_max.
+            (&[0.37, 0.50, 0.56, 0.50], &[0.0, 0.3, 2.0, 2.1]),
+            (&[0.37, 0.56, 0.37, 0.56], &[0.0, 1.0, 1.7, 3.0]),
+        ];
+        for (legs, ts) in cases {
+            let rows: Vec<_> = legs
                 .iter()
                 .zip(ts)
                 .enumerate()
-                .map(|(k, (l, t))| {
-                    let mut z = ZVec::zeros();
-                    z[0] = k as f64 * 0.3;
-                    for i in 0..4 {
-                        z[3 + i] = *l;
-                    }
-                    Waypoint { t: *t, z }
-                })
+                .map(|(k, (l, t))| (Some(*t), k as f64 * 0.3, [*l; 4]))
                 .collect();
-            QuinticSpline::new(&p, &w)
-        };
-        for (legs, ts) in [
-            (vec![0.37, 0.56], vec![0.0, 2.0]),
-            (vec![0.56, 0.37], vec![0.0, 2.0]),
-            (vec![0.40, 0.56, 0.56, 0.40], vec![0.0, 1.0, 2.5, 3.0]),
-            (vec![0.37, 0.45, 0.56], vec![0.0, 1.0, 3.0]),
-            (vec![0.37, 0.50, 0.56, 0.50], vec![0.0, 0.3, 2.0, 2.1]),
-            (vec![0.37, 0.56, 0.37, 0.56], vec![0.0, 1.0, 1.7, 3.0]),
-        ] {
-            match mk(&legs, &ts) {
-                Ok(_) => println!("{legs:?} ok"),
-                Err(e) => println!("{legs:?} {e}"),
+            let s = QuinticSpline::from_toml_str(&p, &legs_file(&rows)).expect("accepted");
+            for k in 0..=4000 {
+                let r = s.sample(s.duration() * k as f64 / 4000.0);
+                for i in 0..4 {
+                    assert!(
+                        (0.37..=0.56).contains(&r.z[3 + i]),
+                        "{legs:?}: {}",
+                        r.z[3 + i]
+                    );
+                }
+            }
+            for (l, t) in legs.iter().zip(ts) {
+                assert!((s.sample(*t).z[3] - l).abs() < 1e-12);
             }
         }
+        // Outside the range is still refused, naming the waypoint and leg.
+        let e = QuinticSpline::from_toml_str(
+            &p,
+            &legs_file(&[
+                (Some(0.0), 0.0, [0.45; 4]),
+                (Some(1.0), 1.0, [0.45, 0.5601, 0.45, 0.45]),
+            ]),
+        )
+        .unwrap_err();
+        assert!(
+            e.to_string().contains("waypoints[1].legs[1] = 0.5601"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn waypoints_without_times_get_nominal_durations_and_free_segments() {
+        let p = Platform::justin();
+        let l = [0.45; 4];
+        // No times at all: knot times from the nominal durations, every segment free.
+        let free = legs_file(&[
+            (None, 0.0, l),
+            (None, 1.0, l),
+            (None, 1.5, [0.56, 0.45, 0.45, 0.45]),
+        ]);
+        let s = QuinticSpline::from_toml_str(&p, &free).unwrap();
+        let v = p.limits.wheel_speed * p.wheel_radius;
+        assert!((s.times()[1] - 1.0 / v).abs() < 1e-12, "{:?}", s.times());
+        // 0.11 m of leg at 0.25 m/s takes longer than 0.5 m of travel at 1.18 m/s.
+        assert!((s.times()[2] - s.times()[1] - 0.11 / p.limits.leg_speed).abs() < 1e-12);
+        assert!(!s.timed_at(0.1) && !s.timed_at(s.duration()));
+        assert_eq!(s.waypoint_near(s.times()[1] + 0.01), Some(1));
+        // Mixed: a segment between two timed waypoints keeps its duration, the others are
+        // free; absolute times are not kept across a free segment.
+        let mixed = legs_file(&[
+            (Some(0.0), 0.0, l),
+            (None, 1.0, l),
+            (Some(7.0), 2.0, l),
+            (Some(9.0), 3.0, l),
+        ]);
+        let s = QuinticSpline::from_toml_str(&p, &mixed).unwrap();
+        let t = s.times();
+        assert!(
+            (t[3] - t[2] - 2.0).abs() < 1e-12 && (t[1] - 1.0 / v).abs() < 1e-12,
+            "{t:?}"
+        );
+        assert!(!s.timed_at(0.5 * (t[0] + t[1])) && !s.timed_at(0.5 * (t[1] + t[2])));
+        assert!(s.timed_at(0.5 * (t[2] + t[3])));
+        // All timed: the times as given, bit for bit.
+        let timed = QuinticSpline::from_toml_str(&p, WP).unwrap();
+        assert_eq!(timed.times(), &[0.0, 4.0, 7.0]);
+        assert!(timed.timed_at(5.0));
+        // Consecutive given times must still increase.
+        let bad = legs_file(&[
+            (Some(0.0), 0.0, l),
+            (Some(2.0), 1.0, l),
+            (Some(1.0), 2.0, l),
+            (None, 3.0, l),
+        ]);
+        assert!(matches!(
+            QuinticSpline::from_toml_str(&p, &bad),
+            Err(TrajectoryError::NonIncreasingTime { waypoint: 2, .. })
+        ));
+        assert!(nominal_segment_time(&p, &ZVec::zeros(), &ZVec::zeros()) == MIN_SEGMENT_S);
     }
 }
