@@ -26,6 +26,7 @@ pub mod runtime;
 pub mod scenario;
 pub mod shaper;
 pub mod supervisor;
+pub mod timescale;
 pub mod trajectory;
 pub mod types;
 pub mod wmr;

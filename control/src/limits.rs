@@ -125,13 +125,24 @@ pub fn wheel_demand(p: &Platform, i: usize, r: &ReferenceSample) -> WheelDemand 
         ..WheelDemand::default()
     };
     if sp >= HOLD_SPEED {
-        let cross = u[0] * du[1] - u[1] * du[0];
-        let cross2 = u[0] * ddu[1] - u[1] * ddu[0];
+        let (rate, accel) = direction_rates(u, du, ddu);
         d.moving = true;
-        d.steer_rate = cross / n2;
-        d.steer_accel = cross2 / n2 - 2.0 * cross * dot / (n2 * n2);
+        d.steer_rate = rate;
+        d.steer_accel = accel;
     }
     d
+}
+
+/// First and second derivative of the direction φ = atan2(u) of a vector u(s) with
+/// derivatives u', u'' along any parameter s (time: the steering rate and acceleration of the
+/// module docs; path time: dφ/dτ and d²φ/dτ² for the time scaling):
+/// φ' = (u × u')/|u|², φ'' = (u × u'')/|u|² − 2 (u × u')(u · u')/|u|⁴. Non-finite for u = 0.
+pub fn direction_rates(u: [f64; 2], du: [f64; 2], ddu: [f64; 2]) -> (f64, f64) {
+    let n2 = u[0] * u[0] + u[1] * u[1];
+    let dot = u[0] * du[0] + u[1] * du[1];
+    let cross = u[0] * du[1] - u[1] * du[0];
+    let cross2 = u[0] * ddu[1] - u[1] * ddu[0];
+    (cross / n2, cross2 / n2 - 2.0 * cross * dot / (n2 * n2))
 }
 
 /// The largest ratio demand/limit over every wheel of the reference sample (wheel speed and

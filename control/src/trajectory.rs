@@ -52,6 +52,28 @@ pub trait Trajectory: Send + Sync {
     fn duration(&self) -> f64;
     /// Number of legs n in the samples.
     fn n_legs(&self) -> usize;
+    /// Whether the timing at `t` is given (the time scaling may only slow it down, ṡ ≤ 1)
+    /// or free (next to a waypoint without a time: as fast as the limits allow,
+    /// [`crate::timescale`]). Default: given.
+    fn timed_at(&self, t: f64) -> bool {
+        let _ = t;
+        true
+    }
+    /// The waypoint nearest to time `t`, for messages (`None`: not a waypoint trajectory).
+    fn waypoint_near(&self, t: f64) -> Option<usize> {
+        let _ = t;
+        None
+    }
+    /// How fast the trajectory's clock runs at `t` and why: `Some` for a time-scaled
+    /// trajectory ([`crate::timescale::ScaledTrajectory`]).
+    fn time_scale(&self, t: f64) -> Option<crate::timescale::ScaleStatus> {
+        let _ = t;
+        None
+    }
+    /// The nominal and executed durations and the slowest scale of a time-scaled trajectory.
+    fn timing(&self) -> Option<crate::timescale::Timing> {
+        None
+    }
 }
 
 /// Errors from building or loading a trajectory.
@@ -100,20 +122,6 @@ pub enum TrajectoryError {
         /// Leg index.
         leg: usize,
         /// The value (m).
-        value: f64,
-        /// λ_min (m).
-        min: f64,
-        /// λ_max (m).
-        max: f64,
-    },
-    /// The spline between two waypoints overshoots the leg range.
-    #[error("the spline segment from waypoints[{segment}] to waypoints[{next}] takes leg {leg} to {value} m, outside [{min}, {max}] m: move the waypoints further from the leg limits or space them out", next = segment + 1)]
-    LegOvershoot {
-        /// Segment index (starting waypoint).
-        segment: usize,
-        /// Leg index.
-        leg: usize,
-        /// Extreme value reached (m).
         value: f64,
         /// λ_min (m).
         min: f64,
@@ -412,7 +420,27 @@ pub struct Waypoint {
     pub z: ZVec,
 }
 
-/// C² piecewise-quintic trajectory through timed waypoints.
+/// A waypoint whose time may be left open (`t = None`): the segments next to it get no
+/// given duration, and the time scaling runs them as fast as the actuator limits allow
+/// ([`crate::timescale`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct WaypointSpec {
+    /// Time (s from the trajectory start), or `None`.
+    pub t: Option<f64>,
+    /// z at the waypoint (x, y, θ, λ_1 … λ_n); θ is not wrapped.
+    pub z: ZVec,
+}
+
+impl From<Waypoint> for WaypointSpec {
+    fn from(w: Waypoint) -> Self {
+        Self {
+            t: Some(w.t),
+            z: w.z,
+        }
+    }
+}
+
+/// C² piecewise-quintic trajectory through waypoints.
 ///
 /// Each component on each segment is the quintic Hermite polynomial matching position,
 /// velocity and acceleration at both ends, so position, velocity and acceleration are
@@ -420,15 +448,33 @@ pub struct Waypoint {
 /// and at interior waypoints where the component changes direction; otherwise the
 /// three-point derivative (h_k m_{k−1} + h_{k−1} m_k)/(h_{k−1} + h_k) of the chord slopes
 /// m. Knot accelerations: 0 at the ends, 2 (m_k − m_{k−1})/(h_{k−1} + h_k) inside.
+///
+/// **Legs stay in their range.** A leg segment that these knot values would take beyond
+/// the leg's range (a waypoint at or near a limit reached fast) gets zero velocity and
+/// acceleration for that leg at both its knots, repeated until no segment leaves the range:
+/// a quintic with zero end velocities and accelerations (smoothstep) is monotone and never
+/// leaves [p₀, p₁]. Feasible trajectories keep their knot values (and their samples, bit for
+/// bit); waypoints exactly at a limit are accepted, and evaluated legs are clamped into the
+/// range so rounding can never put one 1e-12 m outside it.
+///
+/// **Segments without a given time.** A segment is *timed* when both its waypoints have a
+/// time (its duration is their difference); otherwise it is *free*: its duration here is the
+/// nominal [`nominal_segment_time`], which only parametrises the path, and
+/// [`Trajectory::timed_at`] tells the time scaling to pick the fastest timing the limits
+/// allow there.
 #[derive(Clone, Debug, PartialEq)]
 pub struct QuinticSpline {
     times: Vec<f64>,
     /// Per segment, per component, the coefficients c0..c5 in τ = t − t_k.
     coeffs: Vec<[[f64; 6]; Z_MAX]>,
+    /// Per segment: its duration was given (true) or is nominal (free).
+    timed: Vec<bool>,
+    /// (λ_min, λ_max) per leg.
+    leg_range: [(f64, f64); MAX_WHEELS],
     n: usize,
 }
 
-fn quintic(p0: f64, v0: f64, a0: f64, p1: f64, v1: f64, a1: f64, h: f64) -> [f64; 6] {
+pub(crate) fn quintic(p0: f64, v0: f64, a0: f64, p1: f64, v1: f64, a1: f64, h: f64) -> [f64; 6] {
     let dp = p1 - p0;
     let h2 = h * h;
     let h3 = h2 * h;
@@ -442,7 +488,7 @@ fn quintic(p0: f64, v0: f64, a0: f64, p1: f64, v1: f64, a1: f64, h: f64) -> [f64
     ]
 }
 
-fn eval_quintic(c: &[f64; 6], tau: f64) -> (f64, f64, f64, f64) {
+pub(crate) fn eval_quintic(c: &[f64; 6], tau: f64) -> (f64, f64, f64, f64) {
     let p = c[0] + tau * (c[1] + tau * (c[2] + tau * (c[3] + tau * (c[4] + tau * c[5]))));
     let v = c[1] + tau * (2.0 * c[2] + tau * (3.0 * c[3] + tau * (4.0 * c[4] + tau * 5.0 * c[5])));
     let a = 2.0 * c[2] + tau * (6.0 * c[3] + tau * (12.0 * c[4] + tau * 20.0 * c[5]));
@@ -451,8 +497,8 @@ fn eval_quintic(c: &[f64; 6], tau: f64) -> (f64, f64, f64, f64) {
 }
 
 /// Latest waypoint time (s): 10 h. Longer runs are split into several trajectories; the
-/// runtime checks every control period of a trajectory against the limits before it starts
-/// (`runtime::check_feasible`), which stays within seconds up to this length.
+/// runtime plans and checks every control period of a trajectory before it starts
+/// ([`crate::timescale`]), which stays within seconds up to this length.
 pub const MAX_WAYPOINT_TIME_S: f64 = 36_000.0;
 
 /// Shortest time between two waypoints (s): 10 ms, shorter than any segment the platform can
@@ -460,11 +506,40 @@ pub const MAX_WAYPOINT_TIME_S: f64 = 36_000.0;
 /// divide by up to the fifth power of the segment time) stay finite.
 pub const MIN_SEGMENT_S: f64 = 0.01;
 
+/// Nominal duration (s) of a segment from `a` to `b` without a given time: the longest of
+/// its translation at the wheels' top rolling speed r·ω_max, its rotation at that speed on the
+/// longest lever (the largest λ_max), and its largest leg move at the leg speed limit; at least
+/// [`MIN_SEGMENT_S`]. It only parametrises the path (the shape of the spline through the
+/// waypoints, like a chord-length parametrisation); the time scaling finds the timing.
+pub fn nominal_segment_time(p: &Platform, a: &ZVec, b: &ZVec) -> f64 {
+    let v = p.limits.wheel_speed * p.wheel_radius;
+    let lever = p.wheels.iter().map(|w| w.lambda_max).fold(0.0, f64::max);
+    let mut h = (b[0] - a[0]).hypot(b[1] - a[1]) / v;
+    h = h.max((b[2] - a[2]).abs() * lever / v);
+    for i in 0..p.n().min(MAX_WHEELS) {
+        h = h.max((b[3 + i] - a[3 + i]).abs() / p.limits.leg_speed);
+    }
+    if h.is_finite() {
+        h.max(MIN_SEGMENT_S)
+    } else {
+        MIN_SEGMENT_S
+    }
+}
+
 impl QuinticSpline {
     /// Builds the spline through `waypoints` (at least 2, strictly increasing times ≥ 0),
-    /// checked against the platform: leg count, leg range at the waypoints and along the
-    /// segments (sampled every 1/200 of each segment).
+    /// checked against the platform: leg count, leg range at the waypoints (the segments are
+    /// kept inside it, see the type's docs).
     pub fn new(p: &Platform, waypoints: &[Waypoint]) -> Result<Self, TrajectoryError> {
+        let specs: Vec<WaypointSpec> = waypoints.iter().map(|w| (*w).into()).collect();
+        Self::from_specs(p, &specs)
+    }
+
+    /// Builds the spline through waypoints whose times may be left open (see the type's docs
+    /// for timed and free segments). A given time must be ≥ 0 and at most
+    /// [`MAX_WAYPOINT_TIME_S`]; between two consecutive waypoints that both have one it must
+    /// increase by at least [`MIN_SEGMENT_S`]. A first waypoint without a time is at 0.
+    pub fn from_specs(p: &Platform, waypoints: &[WaypointSpec]) -> Result<Self, TrajectoryError> {
         let n = p.n().min(MAX_WHEELS);
         if waypoints.len() < 2 {
             return Err(TrajectoryError::TooFewWaypoints {
@@ -472,7 +547,9 @@ impl QuinticSpline {
             });
         }
         for (k, w) in waypoints.iter().enumerate() {
-            finite(&format!("waypoints[{k}].t"), w.t)?;
+            if let Some(t) = w.t {
+                finite(&format!("waypoints[{k}].t"), t)?;
+            }
             for c in 0..3 + n {
                 let name = match c {
                     0 => format!("waypoints[{k}].x"),
@@ -482,40 +559,45 @@ impl QuinticSpline {
                 };
                 finite(&name, w.z[c])?;
             }
-            if k == 0 && w.t < 0.0 {
-                return Err(TrajectoryError::BadParameter {
-                    field: "waypoints[0].t".into(),
-                    value: w.t,
-                    reason: "must be ≥ 0 (time from the trajectory start)".into(),
-                });
+            if let Some(t) = w.t {
+                if k == 0 && t < 0.0 {
+                    return Err(TrajectoryError::BadParameter {
+                        field: "waypoints[0].t".into(),
+                        value: t,
+                        reason: "must be ≥ 0 (time from the trajectory start)".into(),
+                    });
+                }
+                if t > MAX_WAYPOINT_TIME_S {
+                    return Err(TrajectoryError::BadParameter {
+                        field: format!("waypoints[{k}].t"),
+                        value: t,
+                        reason: format!(
+                            "must be at most {MAX_WAYPOINT_TIME_S} s (10 h) from the trajectory start: a longer run is split into several trajectories"
+                        ),
+                    });
+                }
             }
-            if w.t > MAX_WAYPOINT_TIME_S {
-                return Err(TrajectoryError::BadParameter {
-                    field: format!("waypoints[{k}].t"),
-                    value: w.t,
-                    reason: format!(
-                        "must be at most {MAX_WAYPOINT_TIME_S} s (10 h) from the trajectory start: a longer run is split into several trajectories"
-                    ),
-                });
-            }
-            if k > 0 && w.t <= waypoints[k - 1].t {
-                return Err(TrajectoryError::NonIncreasingTime {
-                    waypoint: k,
-                    t: w.t,
-                    previous: waypoints[k - 1].t,
-                });
-            }
-            if k > 0 && w.t - waypoints[k - 1].t < MIN_SEGMENT_S {
-                return Err(TrajectoryError::BadParameter {
-                    field: format!("waypoints[{k}].t"),
-                    value: w.t,
-                    reason: format!(
-                        "is only {} s after waypoints[{}].t = {}: waypoints must be at least {MIN_SEGMENT_S} s apart (a segment shorter than a control cycle cannot be followed)",
-                        crate::num::Num(w.t - waypoints[k - 1].t),
-                        k - 1,
-                        crate::num::Num(waypoints[k - 1].t)
-                    ),
-                });
+            let prev = if k > 0 { waypoints[k - 1].t } else { None };
+            if let (Some(t), Some(prev)) = (w.t, prev) {
+                if t <= prev {
+                    return Err(TrajectoryError::NonIncreasingTime {
+                        waypoint: k,
+                        t,
+                        previous: prev,
+                    });
+                }
+                if t - prev < MIN_SEGMENT_S {
+                    return Err(TrajectoryError::BadParameter {
+                        field: format!("waypoints[{k}].t"),
+                        value: t,
+                        reason: format!(
+                            "is only {} s after waypoints[{}].t = {}: waypoints must be at least {MIN_SEGMENT_S} s apart (a segment shorter than a control cycle cannot be followed)",
+                            crate::num::Num(t - prev),
+                            k - 1,
+                            crate::num::Num(prev)
+                        ),
+                    });
+                }
             }
             for (i, wc) in p.wheels.iter().enumerate().take(n) {
                 let l = w.z[3 + i];
@@ -530,12 +612,45 @@ impl QuinticSpline {
                 }
             }
         }
+        // Knot times: given times where both ends of a segment have one (exactly as given
+        // while no free segment came before), nominal durations elsewhere.
         let m = waypoints.len();
+        let mut times = Vec::with_capacity(m);
+        let mut timed = Vec::with_capacity(m - 1);
+        times.push(waypoints[0].t.unwrap_or(0.0));
+        for k in 1..m {
+            let prev = times[k - 1];
+            let t = match (waypoints[k - 1].t, waypoints[k].t) {
+                (Some(a), Some(b)) => {
+                    timed.push(true);
+                    if prev == a {
+                        b
+                    } else {
+                        prev + (b - a)
+                    }
+                }
+                _ => {
+                    timed.push(false);
+                    prev + nominal_segment_time(p, &waypoints[k - 1].z, &waypoints[k].z)
+                }
+            };
+            if t > MAX_WAYPOINT_TIME_S {
+                return Err(TrajectoryError::BadParameter {
+                    field: format!("waypoints[{k}].t"),
+                    value: t,
+                    reason: format!(
+                        "the trajectory reaches this waypoint only after {} s, beyond the {MAX_WAYPOINT_TIME_S} s (10 h) a run may take: split it into several trajectories",
+                        crate::num::Num(t)
+                    ),
+                });
+            }
+            times.push(t);
+        }
         let mut vel = vec![ZVec::zeros(); m];
         let mut acc = vec![ZVec::zeros(); m];
         for k in 1..m - 1 {
-            let h0 = waypoints[k].t - waypoints[k - 1].t;
-            let h1 = waypoints[k + 1].t - waypoints[k].t;
+            let h0 = times[k] - times[k - 1];
+            let h1 = times[k + 1] - times[k];
             for c in 0..3 + n {
                 let m0 = (waypoints[k].z[c] - waypoints[k - 1].z[c]) / h0;
                 let m1 = (waypoints[k + 1].z[c] - waypoints[k].z[c]) / h1;
@@ -547,48 +662,76 @@ impl QuinticSpline {
                 acc[k][c] = 2.0 * (m1 - m0) / (h0 + h1);
             }
         }
-        let mut coeffs = Vec::with_capacity(m - 1);
-        for k in 0..m - 1 {
-            let h = waypoints[k + 1].t - waypoints[k].t;
-            let mut seg = [[0.0; 6]; Z_MAX];
-            for (c, s) in seg.iter_mut().enumerate().take(3 + n) {
-                *s = quintic(
-                    waypoints[k].z[c],
-                    vel[k][c],
-                    acc[k][c],
-                    waypoints[k + 1].z[c],
-                    vel[k + 1][c],
-                    acc[k + 1][c],
-                    h,
-                );
-            }
-            // leg range along the segment
-            for (i, wc) in p.wheels.iter().enumerate().take(n) {
-                for j in 0..=200 {
-                    let (l, ..) = eval_quintic(&seg[3 + i], h * j as f64 / 200.0);
-                    if l < wc.lambda_min - 1e-9 || l > wc.lambda_max + 1e-9 {
-                        return Err(TrajectoryError::LegOvershoot {
-                            segment: k,
-                            leg: i,
-                            value: l,
-                            min: wc.lambda_min,
-                            max: wc.lambda_max,
-                        });
+        let mut leg_range = [(0.0, 0.0); MAX_WHEELS];
+        for (i, wc) in p.wheels.iter().enumerate().take(n) {
+            leg_range[i] = (wc.lambda_min, wc.lambda_max);
+        }
+        let build = |k: usize, c: usize, vel: &[ZVec], acc: &[ZVec]| {
+            quintic(
+                waypoints[k].z[c],
+                vel[k][c],
+                acc[k][c],
+                waypoints[k + 1].z[c],
+                vel[k + 1][c],
+                acc[k + 1][c],
+                times[k + 1] - times[k],
+            )
+        };
+        // Legs: knots whose values would take a segment out of the range get zero velocity
+        // and acceleration (type docs); each pass zeroes at least one more knot value, so this
+        // ends within 2m passes per leg.
+        for i in 0..n {
+            let c = 3 + i;
+            let (lo, hi) = leg_range[i];
+            for _ in 0..=2 * m {
+                let mut changed = false;
+                for k in 0..m - 1 {
+                    let seg = build(k, c, &vel, &acc);
+                    let h = times[k + 1] - times[k];
+                    let out = (0..=200).any(|j| {
+                        let (l, ..) = eval_quintic(&seg, h * j as f64 / 200.0);
+                        l < lo - 1e-9 || l > hi + 1e-9
+                    });
+                    if out {
+                        for kk in [k, k + 1] {
+                            if vel[kk][c] != 0.0 || acc[kk][c] != 0.0 {
+                                vel[kk][c] = 0.0;
+                                acc[kk][c] = 0.0;
+                                changed = true;
+                            }
+                        }
                     }
                 }
+                if !changed {
+                    break;
+                }
+            }
+        }
+        let mut coeffs = Vec::with_capacity(m - 1);
+        for k in 0..m - 1 {
+            let mut seg = [[0.0; 6]; Z_MAX];
+            for (c, s) in seg.iter_mut().enumerate().take(3 + n) {
+                *s = build(k, c, &vel, &acc);
             }
             coeffs.push(seg);
         }
         Ok(Self {
-            times: waypoints.iter().map(|w| w.t).collect(),
+            times,
             coeffs,
+            timed,
+            leg_range,
             n,
         })
     }
 
+    /// The knot times (s): the waypoints' times, with nominal durations for free segments.
+    pub fn times(&self) -> &[f64] {
+        &self.times
+    }
+
     /// Parses a waypoint list from TOML text and builds the spline for platform `p`.
     ///
-    /// Format: one `[[waypoints]]` table per waypoint with `t` (s), `x`, `y` (m),
+    /// Format: one `[[waypoints]]` table per waypoint with `t` (s, optional), `x`, `y` (m),
     /// `theta` (rad, not wrapped) and `legs` (m, one per wheel):
     ///
     /// ```toml
@@ -599,6 +742,10 @@ impl QuinticSpline {
     /// theta = 0.0
     /// legs = [0.45, 0.45, 0.45, 0.45]
     /// ```
+    ///
+    /// A waypoint without `t` leaves the timing of the segments next to it to the time
+    /// scaling: they run as fast as the actuator limits allow. Given times only fix the
+    /// durations of segments between two waypoints that both have one.
     pub fn from_toml_str(p: &Platform, text: &str) -> Result<Self, TrajectoryError> {
         #[derive(Deserialize)]
         #[serde(deny_unknown_fields)]
@@ -608,7 +755,7 @@ impl QuinticSpline {
         #[derive(Deserialize)]
         #[serde(deny_unknown_fields)]
         struct WpEntry {
-            t: f64,
+            t: Option<f64>,
             x: f64,
             y: f64,
             theta: f64,
@@ -632,9 +779,20 @@ impl QuinticSpline {
             for (i, l) in e.legs.iter().enumerate() {
                 z[3 + i] = *l;
             }
-            wps.push(Waypoint { t: e.t, z });
+            wps.push(WaypointSpec { t: e.t, z });
         }
-        Self::new(p, &wps)
+        Self::from_specs(p, &wps)
+    }
+
+    fn segment_of(&self, t: f64) -> usize {
+        let last = self.times.len() - 1;
+        if t <= self.times[0] {
+            0
+        } else if t >= self.times[last] {
+            last - 1
+        } else {
+            (self.times.partition_point(|&x| x <= t) - 1).min(last - 1)
+        }
     }
 }
 
@@ -662,14 +820,13 @@ impl Trajectory for QuinticSpline {
         };
         let last = self.times.len() - 1;
         let tc = if t.is_finite() { t } else { 0.0 };
-        let (seg, tau, at_end) = if tc <= self.times[0] {
-            (0, 0.0, false)
+        let seg = self.segment_of(tc);
+        let (tau, at_end) = if tc <= self.times[0] {
+            (0.0, false)
         } else if tc >= self.times[last] {
-            (last - 1, self.times[last] - self.times[last - 1], true)
+            (self.times[last] - self.times[last - 1], true)
         } else {
-            // first index with times[k] > tc, minus one
-            let k = self.times.partition_point(|&x| x <= tc) - 1;
-            (k.min(last - 1), tc - self.times[k.min(last - 1)], false)
+            (tc - self.times[seg], false)
         };
         for c in 0..3 + self.n {
             let (p, v, a, j) = eval_quintic(&self.coeffs[seg][c], tau);
@@ -680,6 +837,10 @@ impl Trajectory for QuinticSpline {
                 s.dddz[c] = j;
             }
         }
+        for i in 0..self.n {
+            let (lo, hi) = self.leg_range[i];
+            s.z[3 + i] = s.z[3 + i].clamp(lo, hi);
+        }
         s
     }
     fn duration(&self) -> f64 {
@@ -687,6 +848,19 @@ impl Trajectory for QuinticSpline {
     }
     fn n_legs(&self) -> usize {
         self.n
+    }
+    fn timed_at(&self, t: f64) -> bool {
+        let t = if t.is_finite() { t } else { 0.0 };
+        self.timed[self.segment_of(t)]
+    }
+    fn waypoint_near(&self, t: f64) -> Option<usize> {
+        let t = if t.is_finite() { t } else { 0.0 };
+        let k = self.segment_of(t);
+        Some(if t - self.times[k] <= self.times[k + 1] - t {
+            k
+        } else {
+            k + 1
+        })
     }
 }
 
@@ -918,5 +1092,116 @@ legs = [0.45, 0.45, 0.45, 0.50]
             "{m}"
         );
         assert!(QuinticSpline::from_toml_str(&p, &file("36000.0")).is_ok());
+    }
+
+    fn legs_file(rows: &[(Option<f64>, f64, [f64; 4])]) -> String {
+        rows.iter()
+            .map(|(t, x, l)| {
+                let t = t.map(|t| format!("t = {t}\n")).unwrap_or_default();
+                format!(
+                    "[[waypoints]]\n{t}x = {x}\ny = 0.0\ntheta = 0.0\nlegs = [{}, {}, {}, {}]\n\n",
+                    l[0], l[1], l[2], l[3]
+                )
+            })
+            .collect()
+    }
+
+    #[test]
+    fn waypoints_at_a_leg_limit_are_accepted_and_the_legs_never_leave_their_range() {
+        let p = Platform::justin();
+        let cases: [(&[f64], &[f64]); 4] = [
+            (&[0.37, 0.56], &[0.0, 2.0]),
+            (&[0.40, 0.56, 0.56, 0.40], &[0.0, 1.0, 2.5, 3.0]),
+            // Fast up to a waypoint just below the limit, then on to it: the three-point knot
+            // velocity would carry the leg 0.2 mm past λ_max.
+            (&[0.37, 0.50, 0.56, 0.50], &[0.0, 0.3, 2.0, 2.1]),
+            (&[0.37, 0.56, 0.37, 0.56], &[0.0, 1.0, 1.7, 3.0]),
+        ];
+        for (legs, ts) in cases {
+            let rows: Vec<_> = legs
+                .iter()
+                .zip(ts)
+                .enumerate()
+                .map(|(k, (l, t))| (Some(*t), k as f64 * 0.3, [*l; 4]))
+                .collect();
+            let s = QuinticSpline::from_toml_str(&p, &legs_file(&rows)).expect("accepted");
+            for k in 0..=4000 {
+                let r = s.sample(s.duration() * k as f64 / 4000.0);
+                for i in 0..4 {
+                    assert!(
+                        (0.37..=0.56).contains(&r.z[3 + i]),
+                        "{legs:?}: {}",
+                        r.z[3 + i]
+                    );
+                }
+            }
+            for (l, t) in legs.iter().zip(ts) {
+                assert!((s.sample(*t).z[3] - l).abs() < 1e-12);
+            }
+        }
+        // Outside the range is still refused, naming the waypoint and leg.
+        let e = QuinticSpline::from_toml_str(
+            &p,
+            &legs_file(&[
+                (Some(0.0), 0.0, [0.45; 4]),
+                (Some(1.0), 1.0, [0.45, 0.5601, 0.45, 0.45]),
+            ]),
+        )
+        .unwrap_err();
+        assert!(
+            e.to_string().contains("waypoints[1].legs[1] = 0.5601"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn waypoints_without_times_get_nominal_durations_and_free_segments() {
+        let p = Platform::justin();
+        let l = [0.45; 4];
+        // No times at all: knot times from the nominal durations, every segment free.
+        let free = legs_file(&[
+            (None, 0.0, l),
+            (None, 1.0, l),
+            (None, 1.5, [0.56, 0.45, 0.45, 0.45]),
+        ]);
+        let s = QuinticSpline::from_toml_str(&p, &free).unwrap();
+        let v = p.limits.wheel_speed * p.wheel_radius;
+        assert!((s.times()[1] - 1.0 / v).abs() < 1e-12, "{:?}", s.times());
+        // 0.11 m of leg at 0.25 m/s takes longer than 0.5 m of travel at 1.18 m/s.
+        assert!((s.times()[2] - s.times()[1] - 0.11 / p.limits.leg_speed).abs() < 1e-12);
+        assert!(!s.timed_at(0.1) && !s.timed_at(s.duration()));
+        assert_eq!(s.waypoint_near(s.times()[1] + 0.01), Some(1));
+        // Mixed: a segment between two timed waypoints keeps its duration, the others are
+        // free; absolute times are not kept across a free segment.
+        let mixed = legs_file(&[
+            (Some(0.0), 0.0, l),
+            (None, 1.0, l),
+            (Some(7.0), 2.0, l),
+            (Some(9.0), 3.0, l),
+        ]);
+        let s = QuinticSpline::from_toml_str(&p, &mixed).unwrap();
+        let t = s.times();
+        assert!(
+            (t[3] - t[2] - 2.0).abs() < 1e-12 && (t[1] - 1.0 / v).abs() < 1e-12,
+            "{t:?}"
+        );
+        assert!(!s.timed_at(0.5 * (t[0] + t[1])) && !s.timed_at(0.5 * (t[1] + t[2])));
+        assert!(s.timed_at(0.5 * (t[2] + t[3])));
+        // All timed: the times as given, bit for bit.
+        let timed = QuinticSpline::from_toml_str(&p, WP).unwrap();
+        assert_eq!(timed.times(), &[0.0, 4.0, 7.0]);
+        assert!(timed.timed_at(5.0));
+        // Consecutive given times must still increase.
+        let bad = legs_file(&[
+            (Some(0.0), 0.0, l),
+            (Some(2.0), 1.0, l),
+            (Some(1.0), 2.0, l),
+            (None, 3.0, l),
+        ]);
+        assert!(matches!(
+            QuinticSpline::from_toml_str(&p, &bad),
+            Err(TrajectoryError::NonIncreasingTime { waypoint: 2, .. })
+        ));
+        assert!(nominal_segment_time(&p, &ZVec::zeros(), &ZVec::zeros()) == MIN_SEGMENT_S);
     }
 }

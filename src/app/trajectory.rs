@@ -24,6 +24,10 @@ pub(crate) struct DemoArgs {
     /// Scenario: seed000 (the seed-000 experiment) or seed001 (the avoidance experiment).
     #[arg(long, default_value = "seed000")]
     pub(crate) scenario: String,
+    /// Follow your own waypoint file (TOML; `t` optional per waypoint) instead of a scenario:
+    /// the simulator starts at its first waypoint, the run is time-scaled into the limits.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["scenario", "commands", "teleop"])]
+    pub(crate) trajectory: Option<PathBuf>,
     /// Run on virtual time as fast as the CPU allows (deterministic) instead of real time.
     #[arg(long)]
     pub(crate) lockstep: bool,
@@ -75,10 +79,23 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
     // Everything is validated before anything is created or started.
     let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
     a.ros2.options(platform.n())?; // refuses --ros2-* options without --ros2
-    let sc: Scenario = a.scenario.parse()?;
-    let traj = scenario::trajectory(sc, &platform)?;
-    let duration = traj.duration();
-    let cfg = runtime_config(&a.common, Some(sc))?;
+    let (traj, sc, name) = match &a.trajectory {
+        Some(file) => {
+            let t = rollbase_control::trajectory::load_waypoints(&platform, file)
+                .map_err(scenario::ScenarioError::from)?;
+            let t: Box<dyn rollbase_control::trajectory::Trajectory> = Box::new(t);
+            (t, None, "trajectory".to_string())
+        }
+        None => {
+            let sc: Scenario = a.scenario.parse()?;
+            (
+                scenario::trajectory(sc, &platform)?,
+                Some(sc),
+                sc.name().to_string(),
+            )
+        }
+    };
+    let cfg = runtime_config(&a.common, sc)?;
     let faults = match &a.faults {
         Some(p) => FaultSchedule::load(p)?,
         None => FaultSchedule::default(),
@@ -87,34 +104,41 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
         Some(p) => PlantConfig::load(p)?,
         None => PlantConfig::default(),
     };
-    let plan = OutputPlan::of(&a.common, sc.name());
+    let plan = OutputPlan::of(&a.common, &name);
     plan.check()?;
     let r0 = traj.sample(0.0);
+    let controller = cfg.controller;
     let mut core = CycleCore::new(platform.clone(), traj, cfg)?;
+    // The executed duration: the time scaling may have stretched the trajectory.
+    let duration = core.reference_duration();
     let sim = Simulator::new(&platform, plant_cfg, faults, &r0, a.seed)?;
     let mut meta = BTreeMap::new();
-    meta.insert("scenario".into(), sc.name().to_string());
+    meta.insert("scenario".into(), name.clone());
+    if let Some(file) = &a.trajectory {
+        meta.insert("trajectory".into(), file.display().to_string());
+    }
     meta.insert(
         "mode".into(),
         if a.lockstep { "lockstep" } else { "realtime" }.to_string(),
     );
     meta.insert("seed".into(), a.seed.to_string());
-    meta.insert(
-        "controller".into(),
-        format!("{:?}", cfg_controller(&a.common, sc)),
-    );
+    meta.insert("controller".into(), format!("{controller:?}"));
     let origin = if a.lockstep { 0.0 } else { unix_now() };
     let quiet = a.common.json;
     let stop = Arc::new(AtomicBool::new(false));
     let signalled = install_signals(stop.clone(), SignalAction::ControlledStop);
-    let mut sinks = Sinks::new(sc.name(), &plan, "vcan0", origin, meta)?;
+    let mut sinks = Sinks::new(&name, &plan, "vcan0", origin, meta)?;
+    sinks.summary.timing = core.trajectory_timing();
     let max_cycles = ((duration + 20.0) * platform.cycle_hz) as u64;
     if !quiet {
+        let what = match &a.trajectory {
+            Some(file) => format!("trajectory {}", file.display()),
+            None => format!("scenario {name}"),
+        };
         errln!(
-            "demo: scenario {} ({:.1} s), controller {}, {} on the in-process bus",
-            sc.name(),
-            duration,
-            format!("{:?}", cfg_controller(&a.common, sc)).to_lowercase(),
+            "demo: {what} ({}), controller {}, {} on the in-process bus",
+            timing_text(&core, duration),
+            format!("{controller:?}").to_lowercase(),
             if a.lockstep { "lockstep" } else { "real time" }
         );
     }
@@ -133,6 +157,28 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
         run_demo_realtime(&mut core, sim, &mut sinks, &stop, duration, quiet)?;
     }
     finish(sinks, &core, &a.common, signalled.load(Ordering::SeqCst))
+}
+
+/// The trajectory's durations for the start line: "12.3 s" when it runs as given, "12.3 s
+/// nominal, 15.1 s executed, slowest 43 % (wheel 2 steering rate)" when the time scaling
+/// stretched it.
+fn timing_text(core: &CycleCore, duration: f64) -> String {
+    match core.trajectory_timing() {
+        Some(t) if t.executed_duration_s != t.nominal_duration_s => {
+            let why = if t.limiting == rollbase_control::ports::Limiting::None {
+                String::new()
+            } else {
+                format!(" (wheel {} {})", t.wheel + 1, t.limiting.name())
+            };
+            format!(
+                "{:.1} s nominal, {:.1} s executed, slowest {:.0} %{why}",
+                t.nominal_duration_s,
+                t.executed_duration_s,
+                t.min_scale * 100.0
+            )
+        }
+        _ => format!("{duration:.1} s"),
+    }
 }
 
 /// Finishes a run's outputs, prints its summary (and the recording's failure, if any), and
@@ -212,15 +258,6 @@ pub(crate) fn run_demo_lockstep(
     }
 }
 
-pub(crate) fn cfg_controller(
-    common: &CommonRun,
-    sc: Scenario,
-) -> rollbase_control::runtime::ControllerKind {
-    runtime_config(common, Some(sc))
-        .map(|c| c.controller)
-        .unwrap_or(rollbase_control::runtime::ControllerKind::Dfl)
-}
-
 pub(crate) fn run_demo_realtime(
     core: &mut CycleCore,
     sim: Simulator,
@@ -247,14 +284,27 @@ pub(crate) fn run_demo_realtime(
                 let t = r.reference.t;
                 let frac = (t / duration.max(1e-9)).clamp(0.0, 1.0);
                 let bars = (frac * 30.0) as usize;
+                // The time scaling slows the trajectory where an actuator needs it: say so.
+                let slowing = if r.shaping.limiting != rollbase_control::ports::Limiting::None
+                    && r.shaping.scale < 0.995
+                {
+                    format!(
+                        "slowing to {:3.0} % ({})",
+                        r.shaping.scale * 100.0,
+                        r.shaping.limiting.name()
+                    )
+                } else {
+                    String::new()
+                };
                 err!(
-                    "\r[{}{}] {:5.1}/{:.1} s  {:<9} pos err {:6.2} mm   ",
+                    "\r[{}{}] {:5.1}/{:.1} s  {:<9} pos err {:6.2} mm  {:<40}",
                     "#".repeat(bars),
                     ".".repeat(30 - bars),
                     t,
                     duration,
                     r.state.name(),
-                    sinks.summary.max_position_error_m * 1e3
+                    sinks.summary.max_position_error_m * 1e3,
+                    slowing
                 );
             }
         },
@@ -280,7 +330,6 @@ pub(crate) fn run_bus(a: RunArgs) -> Result<i32, CliError> {
     }
     let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
     let (traj, sc) = scenario::trajectory_arg(&a.trajectory, &platform)?;
-    let duration = traj.duration();
     let cfg = runtime_config(&a.common, sc)?;
     let name = sc
         .map(|s| s.name().to_string())
@@ -288,6 +337,7 @@ pub(crate) fn run_bus(a: RunArgs) -> Result<i32, CliError> {
     let plan = OutputPlan::of(&a.common, &name);
     plan.check()?;
     let mut core = CycleCore::new(platform.clone(), traj, cfg)?;
+    let duration = core.reference_duration();
     let mut canbus = bus::open(&a.bus)?;
     let origin = unix_now();
     let mut meta = BTreeMap::new();
@@ -297,6 +347,7 @@ pub(crate) fn run_bus(a: RunArgs) -> Result<i32, CliError> {
     let signalled = install_signals(stop.clone(), SignalAction::ControlledStop);
     // The interface name as candump logs it ("vcan0", also for socketcand://HOST:PORT/vcan0).
     let mut sinks = Sinks::new(&name, &plan, canbus.name(), origin, meta)?;
+    sinks.summary.timing = core.trajectory_timing();
     if let Some(d) = a.duration {
         let stop = stop.clone();
         std::thread::spawn(move || {
@@ -305,7 +356,12 @@ pub(crate) fn run_bus(a: RunArgs) -> Result<i32, CliError> {
         });
     }
     if !a.common.json {
-        errln!("run: {} on {} ({:.1} s)", name, a.bus, duration);
+        errln!(
+            "run: {} on {} ({})",
+            name,
+            a.bus,
+            timing_text(&core, duration)
+        );
     }
     let report = run_cycle(
         &mut core,

@@ -31,13 +31,22 @@ use rollbase_driver::canopen::master::DeviceFault;
 use rollbase_driver::codec::{ModuleState, Setpoint, SetpointFlags, FAULT_WATCHDOG};
 use rollbase_driver::frame::{CanFrame, FrameBuf};
 
-/// Checks, before anything starts, that the reference stays inside the platform's wheel
-/// speed and leg speed limits (sampled every control period over the whole trajectory):
-/// the wheel's rolling speed |u_i| / r (seed 000 eq. 18, [`crate::model::wheel_velocity_body`])
-/// against `limits.wheel_speed` and |λ̇_i*| against `limits.leg_speed`. Steering rates are
-/// not checked here: near rest they are unbounded in the reference (singularity A) and the
-/// controllers limit them.
+/// Checks, before anything starts, what no timing of the trajectory can fix
+/// ([`crate::timescale::check_fixable`]): a duration beyond 10 h, a leg leaving its range, a
+/// moving wheel whose direction of travel jumps (a corner without a stop). The error names
+/// the waypoint and the cause. Everything else runs, stretched where the limits need it
+/// ([`crate::timescale::ScaledTrajectory`], which [`CycleCore::new`] plans).
 pub fn check_feasible(p: &Platform, traj: &dyn Trajectory) -> Result<(), RuntimeError> {
+    crate::timescale::check_fixable(p, traj, &crate::timescale::TimeScaleConfig::default())?;
+    Ok(())
+}
+
+/// For a trajectory run as given (time scaling off): that it stays inside the platform's
+/// wheel speed and leg speed limits, sampled every control period (the wheel's rolling speed
+/// |u_i| / r, seed 000 eq. 18, against `limits.wheel_speed`, |λ̇_i*| against
+/// `limits.leg_speed`). Steering rates are not checked: near rest they are unbounded in the
+/// reference (singularity A) and the controllers (and the avoidance) limit them.
+fn check_speeds(p: &Platform, traj: &dyn Trajectory) -> Result<(), RuntimeError> {
     let n = p.n().min(MAX_WHEELS).min(traj.n_legs());
     let dt = p.dt();
     let d = traj.duration();
@@ -79,6 +88,29 @@ pub fn check_feasible(p: &Platform, traj: &dyn Trajectory) -> Result<(), Runtime
         }
     }
     Ok(())
+}
+
+/// The trajectory the core follows: time-scaled into the limits
+/// ([`RuntimeConfig::time_scaling`]), unless it already is or scaling is off (then it must
+/// stay within the speed limits as given).
+fn prepare_trajectory(
+    p: &Platform,
+    trajectory: Box<dyn Trajectory>,
+    cfg: &RuntimeConfig,
+) -> Result<Box<dyn Trajectory>, RuntimeError> {
+    if trajectory.time_scale(0.0).is_some() {
+        return Ok(trajectory);
+    }
+    match cfg.time_scaling {
+        Some(ts) => Ok(Box::new(crate::timescale::ScaledTrajectory::plan(
+            p, trajectory, ts,
+        )?)),
+        None => {
+            check_feasible(p, trajectory.as_ref())?;
+            check_speeds(p, trajectory.as_ref())?;
+            Ok(trajectory)
+        }
+    }
 }
 
 /// When a feedback stream last delivered a sample.
@@ -263,7 +295,7 @@ impl CycleCore {
                 platform: n,
             });
         }
-        check_feasible(&platform, trajectory.as_ref())?;
+        let trajectory = prepare_trajectory(&platform, trajectory, &cfg)?;
         let r0 = trajectory.sample(0.0);
         let mut legs = [0.0; MAX_WHEELS];
         legs[..n].copy_from_slice(&r0.z.as_slice()[3..3 + n]);
@@ -462,6 +494,16 @@ impl CycleCore {
         match &self.source {
             Source::Live(l) => l.last_rejection,
             Source::Trajectory(_) => None,
+        }
+    }
+
+    /// The timing of the trajectory being followed when it is time-scaled: nominal and
+    /// executed durations, the slowest scale and why (`None` for live commands or an
+    /// unscaled trajectory).
+    pub fn trajectory_timing(&self) -> Option<crate::timescale::Timing> {
+        match &self.source {
+            Source::Trajectory(s) => s.traj.timing(),
+            Source::Live(_) => None,
         }
     }
 
@@ -1193,6 +1235,21 @@ impl CycleCore {
         match &mut self.source {
             Source::Trajectory(s) => {
                 let duration = s.traj.duration();
+                if s.terminal_active && dfl && t_ref + dt < duration {
+                    // The kinematic controller tracks a reference near rest; once the
+                    // reference moves again (faster than 2ε: a trajectory that starts from
+                    // rest, or stops and goes on) the DFL takes over, initialised on it.
+                    let mut v_ref = 0.0f64;
+                    for i in 0..self.n {
+                        let u = crate::limits::contact_kinematics(&self.platform, i, reference)[0];
+                        v_ref = v_ref.max(u[0].hypot(u[1]));
+                    }
+                    if v_ref >= DFL_ENTRY_SPEED {
+                        let r = dfl_entry_reference(&self.platform, reference, meas);
+                        self.controller.reset(&self.platform, &r);
+                        s.terminal_active = false;
+                    }
+                }
                 let mut o = if s.terminal_active {
                     self.kinematic.step(&self.platform, &input)
                 } else {
@@ -1200,7 +1257,8 @@ impl CycleCore {
                 };
                 if o.finished && !s.terminal_active && dfl && t_ref + dt < duration {
                     // The DFL terminated (|v_W*| < ε) before the reference's end: the
-                    // kinematic controller tracks the rest of the way and stops at rest.
+                    // kinematic controller tracks (and stops at rest) until the reference
+                    // moves again.
                     s.terminal_active = true;
                     self.kinematic.reset(&self.platform, reference);
                     o = self.kinematic.step(&self.platform, &input);
@@ -1213,9 +1271,10 @@ impl CycleCore {
                 }
                 sup_in.controller_singular =
                     (o.singular && self.controller_moved) || !command_finite(&o.command);
-                sup_in.trajectory_done = (o.finished
-                    && (s.terminal_active || !dfl || t_ref + dt >= duration))
-                    || t_ref >= duration + 2.0;
+                // A controller that finished before the reference's end is at an interior
+                // rest of the reference; the run ends at the end.
+                sup_in.trajectory_done =
+                    (o.finished && t_ref + dt >= duration) || t_ref >= duration + 2.0;
                 o.command
             }
             Source::Live(l) => {
@@ -1267,11 +1326,23 @@ impl CycleCore {
         let dt = self.platform.dt();
         self.controller_moved = false;
         let cycle = self.cycle;
+        let dfl = self.cfg.controller == ControllerKind::Dfl;
+        let platform = &self.platform;
         let r0 = match &mut self.source {
             Source::Trajectory(s) => {
                 s.track_start_cycle = Some(cycle);
-                s.terminal_active = false;
-                s.traj.sample(0.0)
+                let r0 = s.traj.sample(0.0);
+                // A reference that starts from rest (slower than the DFL's ε, which it
+                // cannot leave on its own) starts with the kinematic controller; the DFL
+                // takes over once the reference moves (seed 000's persistence start, ε,
+                // starts with the DFL).
+                let mut v0 = 0.0f64;
+                for i in 0..platform.n().min(MAX_WHEELS) {
+                    let u = crate::limits::contact_kinematics(platform, i, &r0)[0];
+                    v0 = v0.max(u[0].hypot(u[1]));
+                }
+                s.terminal_active = dfl && v0 < crate::dfl::EPSILON;
+                r0
             }
             Source::Live(l) => {
                 l.dfl_active = false;
@@ -1290,8 +1361,10 @@ impl CycleCore {
             reference: &r0,
         };
         match &self.source {
-            Source::Trajectory(_) => self.controller.step(&self.platform, &input).command,
-            Source::Live(_) => self.kinematic.step(&self.platform, &input).command,
+            Source::Trajectory(s) if !s.terminal_active => {
+                self.controller.step(&self.platform, &input).command
+            }
+            _ => self.kinematic.step(&self.platform, &input).command,
         }
     }
 
@@ -1492,11 +1565,18 @@ impl CycleCore {
                 s.commands = l.stats;
                 s.shaping = l.shaper.status();
             }
-            Source::Trajectory(_) => {
+            Source::Trajectory(src) => {
+                // The time scaling's clock: how fast the trajectory runs now, and why.
+                let status = match (src.track_start_cycle, self.sup.state()) {
+                    (Some(c), SupervisorState::Tracking) => {
+                        src.traj.time_scale((self.cycle - c) as f64 * dt)
+                    }
+                    _ => None,
+                };
                 s.shaping = ShapingState {
                     commanded: Default::default(),
-                    scale: 1.0,
-                    limiting: Limiting::None,
+                    scale: status.map_or(1.0, |x| x.scale),
+                    limiting: status.map_or(Limiting::None, |x| x.limiting),
                 };
             }
         }
@@ -1515,6 +1595,37 @@ impl CycleCore {
     pub fn record_mut(&mut self) -> &mut CycleRecord {
         &mut self.record
     }
+}
+
+/// The reference the DFL is initialised on when it takes over from the kinematic
+/// controller mid-trajectory: its steering reference gives every wheel the direction of its
+/// reference contact velocity on the branch (±π) nearest the wheel's measured angle (the
+/// steering reference's own angle where the reference has one), so the compensator's
+/// reference-wheel speed η_W is the signed speed along the wheel as it stands (seed 000's
+/// perfect matching, [`DflController::reset`]).
+fn dfl_entry_reference(
+    p: &Platform,
+    reference: &ReferenceSample,
+    meas: &Measurement,
+) -> ReferenceSample {
+    let mut r = *reference;
+    if r.steer.valid {
+        return r;
+    }
+    r.steer.valid = true;
+    for i in 0..p.n().min(meas.n).min(MAX_WHEELS) {
+        let u = crate::limits::contact_kinematics(p, i, reference)[0];
+        let phi = meas.wheels[i].steer_angle;
+        let a = u[1].atan2(u[0]);
+        r.steer.angle[i] = if u[0] == 0.0 && u[1] == 0.0 {
+            phi
+        } else {
+            a + (crate::angle::diff(phi, a) / std::f64::consts::PI).round() * std::f64::consts::PI
+        };
+        r.steer.rate[i] = 0.0;
+        r.steer.accel[i] = 0.0;
+    }
+    r
 }
 
 /// The drives' lag compensation ([`crate::platform::Drives`]): adds τ × the reference's

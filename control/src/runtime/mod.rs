@@ -88,6 +88,10 @@ pub struct RuntimeConfig {
     pub shaper: crate::shaper::ShaperConfig,
     /// Bus bit rate (bit/s), for the measured bus load on the state port.
     pub bitrate: u32,
+    /// Time scaling of pre-planned trajectories ([`crate::timescale`]): every trajectory is
+    /// run on a clock that keeps each actuator within its share of its limits (`None`: as
+    /// given, and refused if it exceeds a speed limit). Default on, with the shaper's margins.
+    pub time_scaling: Option<crate::timescale::TimeScaleConfig>,
 }
 
 impl Default for RuntimeConfig {
@@ -101,6 +105,7 @@ impl Default for RuntimeConfig {
             linger_cycles: 25,
             shaper: crate::shaper::ShaperConfig::default(),
             bitrate: 1_000_000,
+            time_scaling: Some(crate::timescale::TimeScaleConfig::default()),
         }
     }
 }
@@ -167,6 +172,10 @@ pub enum RuntimeError {
         /// The limit.
         limit: f64,
     },
+    /// The trajectory needs what no timing can fix (a leg out of range, a corner without a
+    /// stop), or would last too long slowed into the limits.
+    #[error(transparent)]
+    TimeScale(#[from] crate::timescale::TimeScaleError),
     /// The trajectory's duration is not a finite time the runtime can check and run.
     #[error("the trajectory lasts {} s: it must be a finite time of at most {} s (10 h); split longer runs", Num(*duration), crate::trajectory::MAX_WAYPOINT_TIME_S)]
     Duration {

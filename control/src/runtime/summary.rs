@@ -56,6 +56,10 @@ pub struct RunSummary {
     /// Longest time from a command timeout or stop request to the commanded wheels at rest
     /// (s); `None` when the run had none.
     pub stop_time_s: Option<f64>,
+    /// The trajectory's time scaling ([`crate::timescale`]): nominal and executed durations,
+    /// the slowest scale and what limits it there (`None`: live commands or an unscaled
+    /// trajectory). Set by the caller from [`super::CycleCore::trajectory_timing`].
+    pub timing: Option<crate::timescale::Timing>,
     prev: Option<PrevCycle>,
     stop_started: Option<f64>,
 }
@@ -260,6 +264,14 @@ impl RunSummary {
             "ignored_commands": self.ignored_commands,
             "max_direction_error_deg": f(self.max_direction_error_rad.to_degrees()),
             "stop_time_s": self.stop_time_s.map(f),
+            "duration_nominal_s": self.timing.map(|t| f(t.nominal_duration_s)),
+            "duration_executed_s": self.timing.map(|t| f(t.executed_duration_s)),
+            "time_scale_min": self.timing.map(|t| f(t.min_scale)),
+            "time_scale_min_at_s": self.timing.map(|t| f(t.min_scale_at_s)),
+            "time_scale_limit": self.timing.and_then(|t| {
+                (t.limiting != crate::ports::Limiting::None)
+                    .then(|| format!("wheel {} {}", t.wheel + 1, t.limiting.name()))
+            }),
         })
     }
 }

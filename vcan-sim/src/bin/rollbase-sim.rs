@@ -4,6 +4,7 @@
 //! rollbase-sim --bus vcan0 [--config platform.toml] [--profile native|cia402]
 //!              [--plant plant.toml] [--faults faults.toml] [--loss P]
 //!              [--silent NODE:FROM:TO] … [--seed N] [--duration S]
+//!              [--start nominal|scenario:NAME|waypoints.toml]
 //! ```
 //!
 //! The modules answer the controller's SYNCs (the simulator follows the bus's SYNC pace; it
@@ -67,10 +68,16 @@ struct Cli {
     /// Stop after this many seconds (default: run until Ctrl-C).
     #[arg(long, value_name = "S")]
     duration: Option<f64>,
-    /// Where the platform starts: `nominal` (legs at their nominal extension, wheels straight)
-    /// or `scenario:NAME` (the scenario's initial pose and legs, e.g. `scenario:seed000`, so
-    /// `rollbase run --trajectory scenario:seed000` finds the platform where it starts).
-    #[arg(long, default_value = "nominal")]
+    /// Where the platform starts: `nominal` (legs at their nominal extension, wheels straight),
+    /// `scenario:NAME` (the scenario's initial pose and legs, e.g. `scenario:seed000`, so
+    /// `rollbase run --trajectory scenario:seed000` finds the platform where it starts) or a
+    /// waypoint file (its first waypoint's pose and legs, for `rollbase run --trajectory
+    /// FILE`).
+    #[arg(
+        long,
+        default_value = "nominal",
+        value_name = "nominal|scenario:NAME|FILE"
+    )]
     start: String,
     /// Time from a SYNC to the modules' feedback frames (µs).
     #[arg(long, value_name = "US", default_value_t = 300.0)]
@@ -98,6 +105,11 @@ enum CliError {
         option: &'static str,
         value: String,
         reason: &'static str,
+    },
+    #[error("`--start` = {value}: not `nominal`, a scenario (`scenario:seed000`, `scenario:seed001`) or a usable waypoint file: {source}")]
+    Start {
+        value: String,
+        source: rollbase_control::trajectory::TrajectoryError,
     },
     #[error("cannot start the signal handler runtime: {0}")]
     Runtime(std::io::Error),
@@ -171,22 +183,34 @@ fn run(cli: Cli) -> Result<(), CliError> {
         "nominal" => None,
         other => {
             let name = other.strip_prefix("scenario:").unwrap_or(other);
-            let sc: rollbase_control::scenario::Scenario =
-                name.parse().map_err(|_| CliError::Option {
+            let r0 = match name.parse::<rollbase_control::scenario::Scenario>() {
+                Ok(sc) => rollbase_control::scenario::trajectory(sc, &platform)
+                    .map_err(|_| CliError::Option {
+                        option: "--start",
+                        value: other.to_string(),
+                        reason: "the scenario cannot be built for this platform",
+                    })?
+                    .sample(0.0),
+                Err(_) if other.starts_with("scenario:") => return Err(CliError::Option {
                     option: "--start",
                     value: other.to_string(),
-                    reason: "use `nominal` or `scenario:seed000` / `scenario:seed001`",
-                })?;
-            let traj = rollbase_control::scenario::trajectory(sc, &platform).map_err(|_| {
-                CliError::Option {
-                    option: "--start",
-                    value: other.to_string(),
-                    reason: "the scenario cannot be built for this platform",
+                    reason:
+                        "use `nominal`, `scenario:seed000` / `scenario:seed001` or a waypoint file",
+                }),
+                // A waypoint file: the platform starts at its first waypoint (the time
+                // scaling never moves the start).
+                Err(_) => {
+                    use rollbase_control::trajectory::Trajectory;
+                    rollbase_control::trajectory::load_waypoints(&platform, other)
+                        .map_err(|source| CliError::Start {
+                            value: other.to_string(),
+                            source,
+                        })?
+                        .sample(0.0)
                 }
-            })?;
+            };
             Some(rollbase_vcan_sim::InitialState::from_reference(
-                &platform,
-                &traj.sample(0.0),
+                &platform, &r0,
             ))
         }
     };
