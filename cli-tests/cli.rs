@@ -1200,3 +1200,73 @@ fn endless_inputs_to_plot_recover_and_commands_are_refused() {
     assert!(!dir.join("r.mcap").exists());
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// `rollbase demo --trajectory FILE` (issue 18): a waypoint file with times left out and legs
+/// at their limits runs time-scaled in lockstep, the JSON summary gives the nominal and
+/// executed durations and the slowest scale; a file no timing can fix is refused naming the
+/// waypoint.
+#[test]
+fn a_waypoint_file_runs_time_scaled_in_the_demo() {
+    let _serial = serial();
+    let dir = std::env::temp_dir().join(format!("rollbase-cli-traj-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let wp = |t: Option<f64>, x: f64, th: f64, legs: f64| {
+        let t = t.map(|t| format!("t = {t}\n")).unwrap_or_default();
+        format!(
+            "[[waypoints]]\n{t}x = {x}\ny = 0.2\ntheta = {th}\nlegs = [{legs}, {legs}, {legs}, {legs}]\n\n"
+        )
+    };
+    let file = dir.join("waypoints.toml");
+    let text = [
+        wp(Some(0.0), 0.0, 0.0, 0.45),
+        wp(None, 0.8, 1.0, 0.56),
+        wp(Some(4.0), 1.2, 0.0, 0.37),
+        wp(Some(5.0), 0.6, -0.5, 0.45),
+    ]
+    .concat();
+    std::fs::write(&file, text).unwrap();
+    let out = output_within(
+        {
+            let mut c = rollbase();
+            c.args(["demo", "--lockstep", "--json", "--trajectory"])
+                .arg(&file);
+            c
+        },
+        Duration::from_secs(120),
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    assert_eq!(v["supervisor_final_state"], "stopped", "{v}");
+    assert_eq!(v["scenario"], "trajectory");
+    let nominal = v["duration_nominal_s"].as_f64().expect("nominal duration");
+    let executed = v["duration_executed_s"].as_f64().expect("executed duration");
+    let scale = v["time_scale_min"].as_f64().expect("slowest scale");
+    assert!(executed > nominal && scale > 0.0 && scale < 1.0, "{v}");
+    assert!(
+        v["time_scale_limit"]
+            .as_str()
+            .is_some_and(|s| s.starts_with("wheel ")),
+        "{v}"
+    );
+    assert!(v["max_position_error_m"].as_f64().unwrap() < 0.005, "{v}");
+    // A leg beyond its range: refused before anything moves, naming the waypoint.
+    let bad = dir.join("bad.toml");
+    std::fs::write(
+        &bad,
+        [wp(Some(0.0), 0.0, 0.0, 0.45), wp(Some(2.0), 0.5, 0.0, 0.6)].concat(),
+    )
+    .unwrap();
+    let out = rollbase()
+        .args(["demo", "--lockstep", "--trajectory"])
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("waypoints[1].legs[0] = 0.6"), "{err}");
+    let _ = std::fs::remove_dir_all(dir);
+}
