@@ -85,6 +85,71 @@
 //! to exactly zero once |δ|, |δ̇| are below `settle_tolerance` outside every field; while
 //! the state is exactly zero and the ICR is outside every field, [`Avoidance::step`] returns
 //! the nominal sample itself (bit-identical).
+//!
+//! # Live commands: the avoidance at the velocity level
+//!
+//! Everything above filters a *trajectory*: a reference with a pose to return to. A live
+//! command (the base service, [`crate::shaper`]) is a twist held until the next one. It
+//! defines no pose, and the reference the controller follows must be C² and within every
+//! actuator limit, which the shaper guarantees for the goals it plans and for nothing added
+//! after it. Run on the shaped reference, [`Avoidance::step`] breaks both: its push and its
+//! return loop add accelerations (and, near the wheel, steering rates) the shaper did not
+//! budget; under a held command whose ICR rests in a field (a deliberate pivot) the push
+//! never stops and the return loop pulls the ICR back into the field; and the steering
+//! reference the shaper gives for slow wheels belongs to the unmodified reference. (Measured
+//! on the pivot of tests/tests/e2e_drive.rs: 15 mm position error, steering commands at the
+//! 6 rad/s limit, the pivot wheel turning 18° while slow; 21 mm even with F_max = 0.05.) So
+//! with live commands the avoidance acts on the command, before the shaper
+//! ([`avoid_twist`], applied by [`crate::shaper::Shaper`] when the runtime has avoidance on):
+//!
+//! * **The steady state of the push.** Under a constant command, the push of eqs. 9–15 moves
+//!   the ICR along p (from the singular point to the ICR) at constant |v| until
+//!   F_rep(d) = 0 (eq. 8), i.e. to the field's edge d = d_start, and stops there.
+//!   [`avoid_twist`] returns that end point at once: the twist with the command's speed |v|
+//!   and sense of rotation whose ICR is z' = P_k + d_start,k p, i.e. |θ̇'| = |v|/|z'| and
+//!   v' = −θ̇' S z' (v + θ̇ S z = 0 at the ICR). A command whose ICR is outside every field
+//!   passes unchanged (bit for bit). The return loop has nothing to do at this level: it
+//!   returns a pose to its nominal, and a velocity command has no nominal pose; the twist is
+//!   the command's again as soon as the command's ICR leaves the field.
+//! * **Legs.** In that steady state the leg law (eq. 19) sees F_w = −pᵀg F_rep = 0, hence
+//!   c1 δλ³ = 0 and δλ = 0: the legs take no part at the velocity level, and they follow the
+//!   leg targets the command gives (the footprint is the operator's choice, e.g. for a narrow
+//!   door). `legs_free` makes no difference for live commands ("on" and "locked" give the
+//!   same motion). The fields are those of the platform at the leg targets: contact points
+//!   P_i = λ_i g_i, radii by eq. 20 with λ_i,0 = λ_i, capped as in [`Avoidance::step`].
+//! * **Why the result is within every limit.** The avoided twist is the shaper's goal like any
+//!   command: one factor scales it into the speed limits, the transitions to it are timed
+//!   within the acceleration and steering limits, align-first and the platform-wide flip
+//!   apply (the shaper's docs derive each for an arbitrary goal). Nothing is added to the
+//!   shaped reference afterwards, so the controller follows a C² reference within the limits
+//!   and its errors are measured against that reference.
+//! * **A held command is one goal.** The goal depends only on the command, the leg targets
+//!   and the side below, so a command held (or repeated) gives the same goal every cycle and
+//!   the shaper cruises on it.
+//! * **Resting on or crossing the wheel.** p is undefined when the command's ICR rests on the
+//!   contact point (within [`ICR_ON_WHEEL`]): it is then the side of the field used last, or
+//!   outward along the leg (at constant |v| that slows the rotation by |P|/(|P| + d_start):
+//!   0.77 for the Justin default). When the command's ICR crosses the wheel, p turns by about
+//!   π; it is then taken as *exactly* the opposite of the side used last. The wheel's
+//!   velocities at the two goals are then exactly opposite, the shaper's segment between them
+//!   passes through the wheel's zero on a line, and the wheel reverses its roll without
+//!   steering (shaper docs: such a segment does not turn the wheel). Within [`SIDE_TOLERANCE`]
+//!   of the side used last, p is that side itself, so that goals computed from slightly
+//!   different contact points (the shaper's legs start from their measurement) stay exactly
+//!   on one line for that wheel. Any other change of p is a new goal the shaper plans like
+//!   any other (beyond its `far_angle` it stops, aligns and goes).
+//! * **A deliberate pivot about a wheel** cannot both be executed and keep the ICR out of the
+//!   field. With the avoidance on, the avoidance wins: the platform turns about the point
+//!   d_start beyond the wheel, outward along its leg, at the commanded speed of the base, and
+//!   the pivot wheel rolls at |θ̇'| d_start, steered by its direction of travel. It has to be
+//!   that way round: a field that any command may enter keeps nothing out, and "on" is a
+//!   choice of the operator. To pivot about a wheel, run with the avoidance off: the shaper
+//!   then holds that wheel's steering (it is at rest) and it neither chatters nor flips
+//!   (tests/tests/e2e_drive.rs).
+//! * **What it does not keep out.** Only goals are kept out of the fields. A transition
+//!   between two goals is a straight line in q̇ and may pass through a field for a moment;
+//!   when the command's ICR crosses a wheel it passes through the wheel itself, at the exact
+//!   roll reversal above. The shaper times every such transition within the steering limits.
 
 use crate::platform::Platform;
 use crate::types::{ReferenceSample, ZVec, MAX_WHEELS};
@@ -779,6 +844,153 @@ impl Avoidance {
     fn is_zero(&self) -> bool {
         self.delta.iter().all(|v| *v == 0.0) && self.delta_rate.iter().all(|v| *v == 0.0)
     }
+}
+
+/// Outcome of [`avoid_twist`]: the twist to execute and where its ICR was put.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TwistAvoidance {
+    /// The twist to execute (v_x, v_y, ω; base frame): the command's own, or the one with
+    /// the same speed |v| whose ICR is on the edge of the field the command's ICR lay in.
+    pub twist: [f64; 3],
+    /// The command's ICR lay inside a field and was moved to its edge.
+    pub active: bool,
+    /// The wheel whose field held the command's ICR (the nearest relative to its radius,
+    /// when inside none).
+    pub wheel: Option<usize>,
+    /// Distance (m) of the command's ICR from the nearest singular point (∞ when θ̇ = 0).
+    pub distance: f64,
+    /// Field radius per wheel (m), eq. 20 after the no-overlap cap.
+    pub d_start: [f64; MAX_WHEELS],
+    /// Unit direction (body frame) from that wheel's contact point to the ICR put on the
+    /// field's edge; zero when not active.
+    pub push: [f64; 2],
+}
+
+impl Default for TwistAvoidance {
+    fn default() -> Self {
+        Self {
+            twist: [0.0; 3],
+            active: false,
+            wheel: None,
+            distance: f64::INFINITY,
+            d_start: [0.0; MAX_WHEELS],
+            push: [0.0; 2],
+        }
+    }
+}
+
+/// ICR–contact-point distance (m) at or below which the command's ICR counts as resting on
+/// the contact point (1 mm: the contact point is known to the leg's measurement, which the
+/// shaper's leg targets start from): the push direction is then the side used last for that
+/// wheel, or outward along its leg.
+pub const ICR_ON_WHEEL: f64 = 1e-3;
+
+/// Angle (rad) within which the direction from the contact point to the command's ICR counts
+/// as the side used last, or as its opposite (5°; [`avoid_twist`]).
+pub const SIDE_TOLERANCE: f64 = 0.087_266_462_599_716_48;
+
+/// Singularity avoidance of a velocity command (module docs, "Live commands"): when the
+/// ICR of `twist` (v_x, v_y, ω in the base frame) lies inside a wheel's field, returns the
+/// twist with the same speed |v| and the same sense of rotation whose ICR is on that field's
+/// edge, in the direction p from the wheel's contact point to the command's ICR — the steady
+/// state of seed 001's push (eqs. 9–15), where F_rep = 0. `legs` (m) are the leg extensions
+/// the command is executed with (contact points λ_i g_i; field radii by eq. 20 with
+/// λ_i,0 = λ_i, capped as in [`Avoidance::step`]); `leg_dirs` the unit leg directions g_i in
+/// the body frame. `sides[k]`, when a unit vector, is the side of wheel k's field the ICR was
+/// put on last: when the command's ICR rests on the contact point (closer than
+/// [`ICR_ON_WHEEL`]) p is that side (outward along the leg when there is none); when its
+/// direction is within [`SIDE_TOLERANCE`] of that side, p is exactly the side, and within it
+/// of the opposite direction (the ICR crossed the wheel), exactly the opposite side. So a held
+/// command gives the same twist every cycle, and an ICR crossing the wheel gives two goals
+/// whose velocities of that wheel are exactly opposite.
+/// A pure translation (θ̇ = 0), a pure rotation and a disabled configuration pass the twist
+/// through.
+pub fn avoid_twist(
+    cfg: &AvoidanceConfig,
+    leg_dirs: &[[f64; 2]],
+    legs: &[f64],
+    twist: [f64; 3],
+    sides: &[[f64; 2]],
+) -> TwistAvoidance {
+    let mut out = TwistAvoidance {
+        twist,
+        ..TwistAvoidance::default()
+    };
+    let n = leg_dirs.len().min(legs.len()).min(MAX_WHEELS);
+    let [vx, vy, om] = twist;
+    if !(cfg.enabled && vx.is_finite() && vy.is_finite() && om.is_finite()) {
+        return out;
+    }
+    let mut pts = [[0.0; 2]; MAX_WHEELS];
+    for i in 0..n {
+        pts[i] = [legs[i] * leg_dirs[i][0], legs[i] * leg_dirs[i][1]];
+    }
+    // Radii: eq. 20, capped to half the distance to the nearest other contact point and to
+    // 0.8 of the distance to the centre (as in `scan_fields`), so fields never overlap and the
+    // edge of one is outside every other.
+    for i in 0..n {
+        let mut cap = 0.8 * pts[i][0].hypot(pts[i][1]);
+        for j in 0..n {
+            if j != i {
+                cap = cap.min(0.5 * (pts[i][0] - pts[j][0]).hypot(pts[i][1] - pts[j][1]));
+            }
+        }
+        out.d_start[i] = field_radius(cfg, legs[i]).max(0.0).min(cap);
+    }
+    let Some(z) = icr_from_twist(vx, vy, om) else {
+        return out;
+    };
+    let mut best = f64::INFINITY;
+    for (i, (pt, r)) in pts.iter().zip(&out.d_start).take(n).enumerate() {
+        let d = (z[0] - pt[0]).hypot(z[1] - pt[1]);
+        out.distance = out.distance.min(d);
+        if *r > 0.0 && d / r < best {
+            best = d / r;
+            out.wheel = Some(i);
+        }
+    }
+    let Some(k) = out.wheel else {
+        return out;
+    };
+    if best >= 1.0 {
+        return out;
+    }
+    let (pk, r) = (pts[k], out.d_start[k]);
+    let e = [z[0] - pk[0], z[1] - pk[1]];
+    let d = e[0].hypot(e[1]);
+    let side = sides.get(k).copied().filter(|h| h[0].hypot(h[1]) > 0.5);
+    let cos_side = SIDE_TOLERANCE.cos();
+    let p = match (d > ICR_ON_WHEEL, side) {
+        (true, Some(h)) => {
+            let c = (e[0] * h[0] + e[1] * h[1]) / d;
+            if c >= cos_side {
+                // Still on that side: exactly it (the wheel keeps its direction).
+                h
+            } else if c <= -cos_side {
+                // Crossed to the far side of the wheel: exactly the opposite side, so that
+                // the wheel's velocity passes through zero on a line (a roll reversal, no
+                // steering).
+                [-h[0], -h[1]]
+            } else {
+                [e[0] / d, e[1] / d]
+            }
+        }
+        (true, None) => [e[0] / d, e[1] / d],
+        (false, Some(h)) => h,
+        (false, None) => leg_dirs[k],
+    };
+    let zn = [pk[0] + r * p[0], pk[1] + r * p[1]];
+    let rn = zn[0].hypot(zn[1]);
+    let speed = vx.hypot(vy);
+    if !(rn > 0.0 && speed.is_finite()) {
+        return out;
+    }
+    // v + ω S z = 0 at the new ICR, with |v| kept: |ω'| = |v|/|z'|, sign of ω kept.
+    let omn = om.signum() * speed / rn;
+    out.twist = [omn * zn[1], -omn * zn[0], omn];
+    out.active = true;
+    out.push = p;
+    out
 }
 
 /// Analytic steering rate φ̇_i = (u × u̇)/|u|² and rolling speed |u_i| (m/s) of every wheel
@@ -1604,5 +1816,144 @@ mod tests {
         let (m, st) = av.step(&p, &r, 0.004);
         assert_eq!(m, r);
         assert!(!st.active && st.min_distance > 0.3);
+    }
+
+    /// Leg directions and legs of the Justin default, for [`avoid_twist`].
+    fn justin_geometry(p: &Platform) -> ([[f64; 2]; 4], [f64; 4]) {
+        let mut dirs = [[0.0; 2]; 4];
+        let mut legs = [0.0; 4];
+        for i in 0..4 {
+            let (s, c) = p.wheels[i].alpha.sin_cos();
+            dirs[i] = [c, s];
+            legs[i] = p.wheels[i].lambda_nominal;
+        }
+        (dirs, legs)
+    }
+
+    /// The twist whose ICR is `z` (body frame) rotating at `om`.
+    fn twist_about(z: [f64; 2], om: f64) -> [f64; 3] {
+        [om * z[1], -om * z[0], om]
+    }
+
+    #[test]
+    fn a_command_outside_every_field_passes_unchanged() {
+        let p = Platform::justin();
+        let (dirs, legs) = justin_geometry(&p);
+        let cfg = AvoidanceConfig::default();
+        for tw in [
+            twist_about([0.2, 0.1], 0.7),
+            twist_about([0.465 * 0.8 + 0.2, 0.465 * 0.6], -0.5),
+            [0.4, -0.2, 0.0],
+            [0.0, 0.0, 1.0],
+            [0.0; 3],
+        ] {
+            let a = avoid_twist(&cfg, &dirs, &legs, tw, &[]);
+            assert!(!a.active);
+            assert_eq!(a.twist.map(f64::to_bits), tw.map(f64::to_bits));
+        }
+        // Off: unchanged whatever the command.
+        let off = AvoidanceConfig {
+            enabled: false,
+            ..Default::default()
+        };
+        let pivot = twist_about([legs[0] * dirs[0][0], legs[0] * dirs[0][1]], 0.6);
+        let a = avoid_twist(&off, &dirs, &legs, pivot, &[]);
+        assert!(!a.active && a.twist == pivot);
+        let nan = avoid_twist(&cfg, &dirs, &legs, [f64::NAN, 0.0, 1.0], &[]);
+        assert!(!nan.active);
+    }
+
+    #[test]
+    fn an_icr_inside_a_field_goes_to_its_edge_at_the_same_speed() {
+        let p = Platform::justin();
+        let (dirs, legs) = justin_geometry(&p);
+        let cfg = AvoidanceConfig::default();
+        let pk = [legs[2] * dirs[2][0], legs[2] * dirs[2][1]];
+        let ds = field_radius(&cfg, legs[2]);
+        for (off, om) in [
+            ([0.03, -0.05], 0.8),
+            ([-0.1, 0.02], -1.3),
+            ([0.0, 0.12], 0.4),
+        ] {
+            let z = [pk[0] + off[0], pk[1] + off[1]];
+            let tw = twist_about(z, om);
+            let a = avoid_twist(&cfg, &dirs, &legs, tw, &[]);
+            assert!(a.active && a.wheel == Some(2));
+            let zn = icr_from_twist(a.twist[0], a.twist[1], a.twist[2]).unwrap();
+            // On the edge, along the direction wheel → commanded ICR.
+            let e = [zn[0] - pk[0], zn[1] - pk[1]];
+            assert!((e[0].hypot(e[1]) - ds).abs() < 1e-12);
+            let d = off[0].hypot(off[1]);
+            assert!((e[0] / ds - off[0] / d).abs() < 1e-9 && (e[1] / ds - off[1] / d).abs() < 1e-9);
+            // Same speed of the base, same sense of rotation (eq. 13: v̇ = 0).
+            assert!((a.twist[0].hypot(a.twist[1]) - tw[0].hypot(tw[1])).abs() < 1e-12);
+            assert_eq!(a.twist[2].signum(), om.signum());
+            // And that is outside every field.
+            let again = avoid_twist(&cfg, &dirs, &legs, a.twist, &[]);
+            assert!(again.distance >= ds - 1e-12);
+        }
+    }
+
+    #[test]
+    fn an_icr_on_the_wheel_goes_outward_or_to_the_side_used_last() {
+        let p = Platform::justin();
+        let (dirs, legs) = justin_geometry(&p);
+        let cfg = AvoidanceConfig::default();
+        let pk = [legs[1] * dirs[1][0], legs[1] * dirs[1][1]];
+        let ds = field_radius(&cfg, legs[1]);
+        // A pivot about wheel 2 (0.5 mm off, within ICR_ON_WHEEL): outward along the leg.
+        let tw = twist_about([pk[0] + 5e-4, pk[1]], 0.6);
+        let a = avoid_twist(&cfg, &dirs, &legs, tw, &[]);
+        assert!(a.active && a.wheel == Some(1));
+        assert_eq!(a.push, dirs[1]);
+        let zn = icr_from_twist(a.twist[0], a.twist[1], a.twist[2]).unwrap();
+        let r = legs[1] + ds;
+        assert!((zn[0] - r * dirs[1][0]).abs() < 1e-12 && (zn[1] - r * dirs[1][1]).abs() < 1e-12);
+        // |θ̇| drops by |P|/(|P| + d_s) at the same speed.
+        let ratio = (tw[2] / a.twist[2]) * legs[1] / r;
+        assert!((ratio - 1.0).abs() < 2e-3, "{ratio}");
+        // With a side remembered, that side.
+        let side = [0.0, -1.0];
+        let sides = [[0.0; 2], side, [0.0; 2], [0.0; 2]];
+        let b = avoid_twist(&cfg, &dirs, &legs, tw, &sides);
+        assert_eq!(b.push, side);
+    }
+
+    #[test]
+    fn an_icr_crossing_the_wheel_reverses_its_roll_exactly() {
+        let p = Platform::justin();
+        let (dirs, legs) = justin_geometry(&p);
+        let cfg = AvoidanceConfig::default();
+        let pk = [legs[0] * dirs[0][0], legs[0] * dirs[0][1]];
+        let om = 0.4;
+        // The ICR moves along x through wheel 1's contact point, 20 µm to the side of it.
+        let mut sides = [[0.0; 2]; 4];
+        let mut last: Option<[f64; 3]> = None;
+        let contact = |tw: [f64; 3]| [tw[0] - tw[2] * pk[1], tw[1] + tw[2] * pk[0]];
+        for k in -30..=30 {
+            let z = [pk[0] + 0.004 * k as f64, pk[1] + 2e-5];
+            let a = avoid_twist(&cfg, &dirs, &legs, twist_about(z, om), &sides);
+            let inside = (0.004 * k as f64).abs() < field_radius(&cfg, legs[0]);
+            assert_eq!(a.active, inside, "k {k}");
+            if a.active {
+                sides[0] = a.push;
+                if let Some(prev) = last {
+                    // Wheel 1's velocity keeps its direction exactly, or reverses it exactly.
+                    let (u0, u1) = (contact(prev), contact(a.twist));
+                    let c = (u0[0] * u1[1] - u0[1] * u1[0]).abs();
+                    assert!(c < 1e-15, "k {k}: cross {c}");
+                }
+                last = Some(a.twist);
+            } else {
+                sides[0] = [0.0; 2];
+                last = None;
+            }
+        }
+        // The same command twice gives the same twist (a held command is one goal).
+        let z = [pk[0] + 0.01, pk[1] + 0.003];
+        let a = avoid_twist(&cfg, &dirs, &legs, twist_about(z, om), &[]);
+        assert!(a.active);
+        let c = avoid_twist(&cfg, &dirs, &legs, twist_about(z, om), &[a.push]);
+        assert_eq!(a.twist, c.twist);
     }
 }

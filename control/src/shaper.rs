@@ -90,6 +90,15 @@
 //! target (nor its range); the last millimetres are crept at a lower speed until within
 //! `leg_tolerance`.
 //!
+//! # Singularity avoidance (when the runtime runs with it)
+//!
+//! With [`Shaper::set_avoidance`] the command is first passed through seed 001's avoidance at
+//! the velocity level ([`crate::avoidance::avoid_twist`]; derivation in [`crate::avoidance`],
+//! "Live commands"): a command whose ICR lies in a wheel's field becomes the twist with the
+//! same base speed whose ICR is on the field's edge. That twist is then the command for
+//! everything above (scale, transitions, align-first, flip), so what the avoidance changes is
+//! shaped within the limits like anything else. The fields are taken at the leg targets.
+//!
 //! # Halt
 //!
 //! [`Shaper::halt`] (command timeout, stop request) sets the goal to rest: the current segment
@@ -104,6 +113,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::angle;
+use crate::avoidance::{avoid_twist, AvoidanceConfig, TwistAvoidance};
 use crate::limits::HOLD_SPEED;
 use crate::platform::{Limits, Platform};
 use crate::ports::{Limiting, ShapingState};
@@ -225,6 +235,12 @@ pub struct Shaper {
     scale: f64,
     limiting: Limiting,
     twist_limit: Limiting,
+    /// Singularity avoidance of the command (seed 001 at the velocity level), if on.
+    avoid: Option<AvoidanceConfig>,
+    /// What it did with the command this cycle.
+    avoided: TwistAvoidance,
+    /// Per wheel, the side its field's edge was taken on last (unit vector; zero: none).
+    avoid_side: [[f64; 2]; MAX_WHEELS],
 }
 
 /// A leg move: from rest (in the legs) to rest, the legs' velocities c·d_i (d_i their share
@@ -309,7 +325,24 @@ impl Shaper {
             scale: 1.0,
             limiting: Limiting::None,
             twist_limit: Limiting::None,
+            avoid: None,
+            avoided: TwistAvoidance::default(),
+            avoid_side: [[0.0; 2]; MAX_WHEELS],
         }
+    }
+
+    /// Switches the singularity avoidance of the command on (`Some`, a configuration the
+    /// caller validated with [`AvoidanceConfig::validate`]) or off (module docs, "Singularity
+    /// avoidance").
+    pub fn set_avoidance(&mut self, cfg: Option<AvoidanceConfig>) {
+        self.avoid = cfg.filter(|c| c.enabled);
+        self.avoided = TwistAvoidance::default();
+        self.avoid_side = [[0.0; 2]; MAX_WHEELS];
+    }
+
+    /// What the singularity avoidance did with the command this cycle (inactive when off).
+    pub fn avoidance(&self) -> &TwistAvoidance {
+        &self.avoided
     }
 
     /// The configuration.
@@ -349,6 +382,8 @@ impl Shaper {
         self.scale = 1.0;
         self.limiting = Limiting::None;
         self.twist_limit = Limiting::None;
+        self.avoided = TwistAvoidance::default();
+        self.avoid_side = [[0.0; 2]; MAX_WHEELS];
     }
 
     /// Follow this body twist (base frame) and, when given, move the legs to these targets
@@ -458,11 +493,31 @@ impl Shaper {
     /// wheel stays within `speed_fraction` of its speed limit at any leg extension in range
     /// (so moving legs never push a wheel beyond it) — less the room the legs need while they
     /// have somewhere to go — and what binds κ.
-    fn twist_goal(&self) -> ([f64; 3], f64, Limiting) {
+    fn twist_goal(&self) -> ([f64; 3], f64, Limiting, TwistAvoidance) {
+        let cmd = [self.twist_cmd.vx, self.twist_cmd.vy, self.twist_cmd.omega];
         if self.halted {
-            return ([0.0; 3], 1.0, self.halt_reason);
+            return ([0.0; 3], 1.0, self.halt_reason, TwistAvoidance::default());
         }
-        let q = [self.twist_cmd.vx, self.twist_cmd.vy, self.twist_cmd.omega];
+        let avoided = match &self.avoid {
+            Some(cfg) => {
+                let mut dirs = [[0.0; 2]; MAX_WHEELS];
+                for i in 0..self.n {
+                    dirs[i] = [self.ca[i], self.sa[i]];
+                }
+                avoid_twist(
+                    cfg,
+                    &dirs[..self.n],
+                    &self.leg_target[..self.n],
+                    cmd,
+                    &self.avoid_side[..self.n],
+                )
+            }
+            None => TwistAvoidance {
+                twist: cmd,
+                ..TwistAvoidance::default()
+            },
+        };
+        let q = avoided.twist;
         let mut vmax = self.cfg.speed_fraction * self.limits.wheel_speed * self.rw;
         // Legs to move: leave the wheels room to roll them at half their speed limit
         // (|u + c e| ≤ |u| + c).
@@ -479,9 +534,14 @@ impl Shaper {
         }
         if worst > vmax {
             let k = vmax / worst;
-            ([q[0] * k, q[1] * k, q[2] * k], k, Limiting::WheelSpeed)
+            (
+                [q[0] * k, q[1] * k, q[2] * k],
+                k,
+                Limiting::WheelSpeed,
+                avoided,
+            )
         } else {
-            (q, 1.0, Limiting::None)
+            (q, 1.0, Limiting::None, avoided)
         }
     }
 
@@ -989,7 +1049,18 @@ impl Shaper {
     pub fn step(&mut self) -> ReferenceSample {
         let dt = self.dt;
         let prev = self.qd;
-        let (tw, k, why) = self.twist_goal();
+        let (tw, k, why, avoided) = self.twist_goal();
+        // The side each field's edge was taken on is kept while the command's ICR stays in
+        // that field (an ICR resting on the wheel keeps it), forgotten once it leaves.
+        for i in 0..self.n {
+            if !(avoided.active && avoided.wheel == Some(i)) {
+                self.avoid_side[i] = [0.0; 2];
+            }
+        }
+        if let (true, Some(w)) = (avoided.active, avoided.wheel) {
+            self.avoid_side[w] = avoided.push;
+        }
+        self.avoided = avoided;
         let (legs, tw) = self.leg_goal(tw);
         let mut goal = [0.0; NQ];
         goal[..3].copy_from_slice(&tw);
@@ -1473,5 +1544,84 @@ mod tests {
             assert_eq!(r.steer.rate[1], 0.0);
         }
         assert!(samples.last().unwrap().dz[2] > 0.49);
+    }
+
+    #[test]
+    fn with_avoidance_a_pivot_turns_about_the_field_edge_and_that_wheel_rolls() {
+        let (p, mut s) = shaper();
+        let cfg = AvoidanceConfig::default();
+        s.set_avoidance(Some(cfg));
+        let a = p.wheels[1].alpha;
+        let l = 0.465;
+        let (px, py) = (l * a.cos(), l * a.sin());
+        let om = 0.5;
+        let cmd = Twist {
+            vx: om * py,
+            vy: -om * px,
+            omega: om,
+        };
+        s.command(cmd, None);
+        let samples = run(&p, &mut s, 1000);
+        assert!(s.avoidance().active && s.avoidance().wheel == Some(1));
+        // Steady: the ICR on the field's edge outward along the leg, the base at the
+        // commanded speed, wheel 2 rolling at |θ̇| d_start.
+        let v = s.velocity();
+        let ds = crate::avoidance::field_radius(&cfg, l);
+        let z = crate::avoidance::icr_from_twist(v[0], v[1], v[2]).unwrap();
+        let want = [(l + ds) * a.cos(), (l + ds) * a.sin()];
+        assert!((z[0] - want[0]).abs() < 1e-12 && (z[1] - want[1]).abs() < 1e-12);
+        assert!((v[0].hypot(v[1]) - cmd.vx.hypot(cmd.vy)).abs() < 1e-12);
+        let last = samples.last().unwrap();
+        let d = wheel_demand(&p, 1, last);
+        assert!((d.speed * p.wheel_radius - v[2].abs() * ds).abs() < 1e-9);
+        // A held command is one goal: the shaper cruises.
+        let before = *s.velocity().first().unwrap();
+        run(&p, &mut s, 100);
+        assert_eq!(before, s.velocity()[0]);
+        assert!(matches!(s.phase, Phase::Cruise));
+    }
+
+    #[test]
+    fn with_avoidance_an_icr_crossing_a_wheel_reverses_its_roll_without_steering() {
+        let (p, mut s) = shaper();
+        s.set_avoidance(Some(AvoidanceConfig::default()));
+        let a = p.wheels[0].alpha;
+        // The leg is 30 µm off its nominal extension (as when reset from a measurement).
+        let l = 0.465;
+        s.reset(Pose::default(), &[l + 3e-5, l, l, l], &[0.0; 4]);
+        let (px, py) = (l * a.cos(), l * a.sin());
+        let om = 0.4;
+        let at = |x: f64| Twist {
+            vx: om * py,
+            vy: -om * x,
+            omega: om,
+        };
+        // Commands every 40 ms moving the ICR along x through wheel 1's contact point.
+        s.command(at(px - 0.3), None);
+        run(&p, &mut s, 800);
+        let mut samples = Vec::new();
+        for k in 0..=150 {
+            s.command(at(px - 0.3 + 0.004 * k as f64), None);
+            samples.extend(run(&p, &mut s, 10));
+        }
+        samples.extend(run(&p, &mut s, 1500));
+        // Wheel 1 did not turn while slow: its velocity passed through zero on a line (a
+        // flip would be π; what is left, 0.1 mrad, is the approach direction settling onto
+        // the field's side, tilted by the leg's offset).
+        let mut turned = 0.0f64;
+        for w in samples.windows(2) {
+            let slow = wheel_demand(&p, 0, &w[1]).speed * p.wheel_radius < HOLD_SPEED;
+            if slow {
+                turned += angle::diff(w[1].steer.angle[0], w[0].steer.angle[0]).abs();
+            }
+        }
+        assert!(turned < 1e-3, "wheel 1 turned {turned} rad while slow");
+        // It did pass through zero, and rolls the other way now.
+        assert!(samples
+            .iter()
+            .any(|r| wheel_demand(&p, 0, r).speed * p.wheel_radius < 1e-3));
+        let v = s.velocity();
+        let want = at(px + 0.3);
+        assert!((v[0] - want.vx).abs() < 1e-12 && (v[1] - want.vy).abs() < 1e-12);
     }
 }

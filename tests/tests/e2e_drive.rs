@@ -66,6 +66,12 @@ fn assert_tracking_bounds(out: &RunOutcome) {
 
 #[test]
 fn commands_far_beyond_every_limit_are_shaped_within_them() {
+    far_beyond_every_limit(&LiveOptions::default());
+}
+
+/// 3 m/s, 5 rad/s, instant reversals, legs end to end: every command within its limits,
+/// the errors within the issue's bounds, the executed direction within 2°.
+fn far_beyond_every_limit(o: &LiveOptions) {
     // 3 m/s, 5 rad/s, instant reversals, legs from one end of their range to the other.
     let lo = [0.37; 4];
     let hi = [0.56; 4];
@@ -79,7 +85,7 @@ fn commands_far_beyond_every_limit_are_shaped_within_them() {
         (3.0, -3.0, 5.0, None),
         (-3.0, 3.0, -5.0, Some([0.56, 0.37, 0.56, 0.37])),
     ];
-    let out = run_live(&LiveOptions::default(), &schedule(&steps, 3.0));
+    let out = run_live(o, &schedule(&steps, 3.0));
     let s = &out.summary;
     eprintln!("{}", s.to_json());
     assert_commands_within_limits(&out);
@@ -146,10 +152,26 @@ const CHATTER_AMPLITUDE: f64 = 0.017_453_292_519_943_295;
 /// Largest change of a wheel's measured steering angle while its commanded rolling speed is
 /// below 1 cm/s (a flip would be about π).
 fn turn_while_slow(out: &RunOutcome, wheel: usize) -> f64 {
+    turn_while_slow_in(&out.records, out.platform.wheel_radius, wheel)
+}
+
+/// [`turn_while_slow`] from the first cycle the wheel's commanded rolling speed exceeds
+/// 2 cm/s on: the alignment before the first roll (align-first, from rest) does not count,
+/// a flip or a turn at a later stop or reversal does.
+fn turn_while_slow_once_rolling(out: &RunOutcome, wheel: usize) -> f64 {
     let r = out.platform.wheel_radius;
+    let first = out
+        .records
+        .iter()
+        .position(|rec| (rec.command.wheels[wheel].wheel_speed * r).abs() > 0.02)
+        .unwrap_or(out.records.len());
+    turn_while_slow_in(&out.records[first..], r, wheel)
+}
+
+fn turn_while_slow_in(records: &[CycleRecord], r: f64, wheel: usize) -> f64 {
     let mut worst = 0.0f64;
     let mut anchor: Option<f64> = None;
-    for rec in &out.records {
+    for rec in records {
         let slow = (rec.command.wheels[wheel].wheel_speed * r).abs() < 0.01
             && rec.state == SupervisorState::Tracking;
         let a = rec.measurement.wheels[wheel].steer_angle;
@@ -477,5 +499,84 @@ fn odometry_over_a_random_60_s_session_stays_within_its_reported_uncertainty() {
         for j in 0..3 {
             assert!((cov[i][j] - cov[j][i]).abs() <= 1e-12 * cov[i][i].max(cov[j][j]));
         }
+    }
+}
+
+/// Seed 001's avoidance on live commands (legs locked, as with live leg commands, and legs
+/// free), for the pivot and the sweep above and the commands far beyond every limit. The
+/// avoidance acts on the command before the shaper (`rollbase_control::avoidance`, "Live
+/// commands"), so the reference the controller follows is shaped as any other: every command
+/// sent within its limits, the errors against that reference within the issue's bounds, the
+/// wheel the ICR rests on or crosses neither chatters nor flips, the run ends stopped.
+///
+/// What it does not keep, and why `drive` runs with avoidance off by default: a deliberate
+/// pivot about a wheel is not executed as commanded. The avoidance wins: the platform turns
+/// about a point on the field's edge, d_start = 0.3 λ = 0.14 m beyond the wheel, at the
+/// commanded speed of the base (so more slowly), and that wheel rolls.
+#[test]
+fn with_avoidance_on_the_pivot_and_the_sweep_do_not_chatter_and_stay_within_the_limits() {
+    let p = rollbase_control::Platform::justin();
+    let cfg = rollbase_control::avoidance::AvoidanceConfig::default();
+    let d_start = rollbase_control::avoidance::field_radius(&cfg, p.wheels[1].lambda_nominal);
+    for mode in ["locked", "on"] {
+        let mut o = LiveOptions::default();
+        o.runtime.avoidance = rollbase_control::scenario::avoidance_mode(mode).unwrap();
+        let (vx, vy, om) = pivot_about(1, 0.6);
+        let steps = [
+            (vx, vy, om, None),
+            (-vx, -vy, -om, None),
+            (vx, vy, om, None),
+        ];
+        let out = run_live(&o, &schedule(&steps, 4.0));
+        eprintln!("avoidance {mode}, pivot: {}", out.summary.to_json());
+        assert_commands_within_limits(&out);
+        assert_tracking_bounds(&out);
+        assert_eq!(
+            chatter(&out, 1),
+            0,
+            "avoidance {mode}: the pivot wheel chatters"
+        );
+        let turn = turn_while_slow_once_rolling(&out, 1);
+        assert!(
+            turn < 2f64.to_radians(),
+            "avoidance {mode}: the pivot wheel turned {:.2}° while slow",
+            turn.to_degrees()
+        );
+        assert!(
+            out.records.iter().any(|r| r.avoidance.active),
+            "avoidance {mode}: the field of the pivot wheel was entered"
+        );
+        // The command's ICR rests on wheel 2; the reference's never came closer to any wheel
+        // than the field's edge, and the platform turned (about that point).
+        let dmin = out.summary.min_icr_wheel_distance_m;
+        assert!(
+            dmin > 0.99 * d_start && dmin < 1.01 * d_start,
+            "avoidance {mode}: ICR {dmin} m from a wheel, field radius {d_start} m"
+        );
+        let rot = out
+            .records
+            .iter()
+            .map(|r| r.reference.dz[2].abs())
+            .fold(0.0, f64::max);
+        assert!(rot > 0.4, "avoidance {mode}: turned at {rot} rad/s");
+
+        let out = run_live(&o, &sweep_commands());
+        eprintln!("avoidance {mode}, sweep: {}", out.summary.to_json());
+        assert_commands_within_limits(&out);
+        assert_tracking_bounds(&out);
+        assert_eq!(
+            chatter(&out, 0),
+            0,
+            "avoidance {mode}: the swept wheel chatters"
+        );
+        let turn = turn_while_slow_once_rolling(&out, 0);
+        assert!(
+            turn < 2f64.to_radians(),
+            "avoidance {mode}: the swept wheel turned {:.2}° while slow",
+            turn.to_degrees()
+        );
+        assert!(out.records.iter().any(|r| r.avoidance.active));
+
+        far_beyond_every_limit(&o);
     }
 }

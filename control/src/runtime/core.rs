@@ -318,7 +318,11 @@ impl CycleCore {
         for (l, w) in legs.iter_mut().zip(&platform.wheels) {
             *l = w.lambda_nominal;
         }
-        let shaper = Shaper::new(&platform, cfg.shaper);
+        let mut shaper = Shaper::new(&platform, cfg.shaper);
+        // Live commands: the avoidance acts on the command, before the shaper (the shaped
+        // reference then carries the avoided motion within every limit; `crate::avoidance`,
+        // "Live commands"). A configuration that fails validation is off, as on trajectories.
+        shaper.set_avoidance(cfg.avoidance.filter(|a| a.validate(&platform).is_ok()));
         let source = Source::Live(Box::new(LiveSource {
             shaper,
             stats: CommandStats::default(),
@@ -1087,7 +1091,20 @@ impl CycleCore {
         }
     }
 
+    /// Singularity avoidance of this cycle's reference (seed 001). A trajectory's reference
+    /// goes through [`Avoidance::step`] while tracking. Live commands were avoided before the
+    /// shaper ([`crate::avoidance`], "Live commands"): the shaped reference is followed as it
+    /// is, and the record says whether the command's ICR was moved out of a field.
     fn avoid(&mut self, nominal: &ReferenceSample, dt: f64) -> (ReferenceSample, AvoidanceRecord) {
+        if let Source::Live(l) = &self.source {
+            let mut rec = icr_record(nominal, &self.wheel_xy[..self.n]);
+            if self.avoidance.is_some() {
+                let a = l.shaper.avoidance();
+                rec.active = a.active && self.sup.state() == SupervisorState::Tracking;
+                rec.d_start = a.d_start;
+            }
+            return (*nominal, rec);
+        }
         match (&mut self.avoidance, self.sup.state()) {
             (Some(a), SupervisorState::Tracking) => {
                 let (r, s) = a.step(&self.platform, nominal, dt);
