@@ -1243,7 +1243,9 @@ fn a_waypoint_file_runs_time_scaled_in_the_demo() {
     assert_eq!(v["supervisor_final_state"], "stopped", "{v}");
     assert_eq!(v["scenario"], "trajectory");
     let nominal = v["duration_nominal_s"].as_f64().expect("nominal duration");
-    let executed = v["duration_executed_s"].as_f64().expect("executed duration");
+    let executed = v["duration_executed_s"]
+        .as_f64()
+        .expect("executed duration");
     let scale = v["time_scale_min"].as_f64().expect("slowest scale");
     assert!(executed > nominal && scale > 0.0 && scale < 1.0, "{v}");
     assert!(

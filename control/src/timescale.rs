@@ -785,7 +785,7 @@ impl ScaledTrajectory {
             let est: f64 = (0..points.saturating_sub(1))
                 .map(|j| segment_time(taus[j + 1] - taus[j], x[j].sqrt(), x[j + 1].sqrt()))
                 .sum();
-            if !(est <= MAX_EXECUTED_S) {
+            if est.is_nan() || est > MAX_EXECUTED_S {
                 let j = (0..points)
                     .min_by(|&a, &b| x[a].total_cmp(&x[b]))
                     .unwrap_or(0);
@@ -1143,7 +1143,7 @@ impl ScaledTrajectory {
 /// again later.
 fn interior_stop(wmax: &[f64]) -> bool {
     let top = wmax.iter().copied().fold(0.0, f64::max);
-    if !(top > 0.0) {
+    if top.is_nan() || top <= 0.0 {
         return false;
     }
     let mut moved = false;
@@ -1172,7 +1172,7 @@ fn knot_time(dtau: f64, v0: f64, v1: f64, a0: f64, a1: f64) -> f64 {
         return guess;
     }
     let disc = qb * qb - 4.0 * qa * qc;
-    if !(disc >= 0.0) {
+    if disc.is_nan() || disc < 0.0 {
         return guess;
     }
     // The root near the trapezoid's, in the form that stays accurate for small qa.
@@ -1318,7 +1318,7 @@ fn smooth_in_time(taus: &[f64], x: &[f64], jerk_time: f64) -> (Vec<f64>, Vec<f64
         tt.push(t);
     }
     let total = t;
-    if !(total > 0.0) {
+    if total.is_nan() || total <= 0.0 {
         return flat;
     }
     let h = (jerk_time / 8.0).max(total / (4 * MAX_GRID) as f64);

@@ -89,7 +89,7 @@ fn assert_bounds(name: &str, o: &Outcome) {
     let s = &o.summary;
     let t = &o.timing;
     println!(
-        "{name}: pos {:.2} mm, heading {:.3}°, legs {:.2} mm, {}, nominal {:.2} s, executed {:.2} s, scale min {:.3} ({}), shares used {:.3}",
+        "{name}: pos {:.2} mm, heading {:.3}°, legs {:.2} mm, {}, nominal {:.2} s, executed {:.2} s, scale min {:.3} at {:.2} s ({}), shares used {:.3}",
         s.max_position_error_m * 1e3,
         s.max_heading_error_rad.to_degrees(),
         s.max_leg_error_m * 1e3,
@@ -97,6 +97,7 @@ fn assert_bounds(name: &str, o: &Outcome) {
         t.nominal_duration_s,
         t.executed_duration_s,
         t.min_scale,
+        t.min_scale_at_s,
         s.to_json()["time_scale_limit"],
         t.max_ratio
     );
