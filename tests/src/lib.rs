@@ -373,3 +373,64 @@ pub fn assert_commands_within_limits(out: &RunOutcome) {
         }
     }
 }
+
+/// Smallest back-and-forth of a steering angle that counts as chatter (1°).
+pub const CHATTER_AMPLITUDE: f64 = 0.017_453_292_519_943_295;
+
+/// Steering chatter of a wheel: reversals of its measured steering angle's direction of
+/// motion, of at least [`CHATTER_AMPLITUDE`] each, while its commanded rolling speed is below
+/// 1 cm/s (`wheel_radius` in m). A turning point counts once the angle has come back by the
+/// amplitude from the last extreme: the drive's small settling at the end of a turn does not
+/// count, a wheel that flips or oscillates does. The measure of the live (e2e_drive) and the
+/// time-scaled (e2e_timescale) tests.
+pub fn steering_chatter(records: &[CycleRecord], wheel_radius: f64, wheel: usize) -> usize {
+    use rollbase_control::angle::diff;
+    let mut reversals = 0;
+    // (extreme angle, direction of motion: +1, −1 or 0 unknown)
+    let mut state: Option<(f64, f64)> = None;
+    let mut base = 0.0;
+    for rec in records {
+        if (rec.command.wheels[wheel].wheel_speed * wheel_radius).abs() >= 0.01 {
+            state = None;
+            continue;
+        }
+        let a = rec.measurement.wheels[wheel].steer_angle;
+        let Some((ext, dir)) = state else {
+            state = Some((a, 0.0));
+            base = a;
+            continue;
+        };
+        let d = diff(a, ext);
+        if dir == 0.0 {
+            if diff(a, base).abs() >= CHATTER_AMPLITUDE {
+                state = Some((a, diff(a, base).signum()));
+            }
+        } else if d * dir > 0.0 {
+            state = Some((a, dir));
+        } else if d.abs() >= CHATTER_AMPLITUDE {
+            reversals += 1;
+            state = Some((a, -dir));
+        }
+    }
+    reversals
+}
+
+/// Largest change of a wheel's measured steering angle while it is commanded to roll slower
+/// than 1 cm/s during tracking (a flip would be about π).
+pub fn steering_turn_while_slow(records: &[CycleRecord], wheel_radius: f64, wheel: usize) -> f64 {
+    let mut worst = 0.0f64;
+    let mut anchor: Option<f64> = None;
+    for rec in records {
+        let slow = (rec.command.wheels[wheel].wheel_speed * wheel_radius).abs() < 0.01
+            && rec.state == rollbase_control::supervisor::SupervisorState::Tracking;
+        let a = rec.measurement.wheels[wheel].steer_angle;
+        match (slow, anchor) {
+            (true, None) => anchor = Some(a),
+            (true, Some(a0)) => {
+                worst = worst.max(rollbase_control::angle::diff(a, a0).abs());
+            }
+            (false, _) => anchor = None,
+        }
+    }
+    worst
+}

@@ -108,51 +108,15 @@ fn far_beyond_every_limit(o: &LiveOptions) {
     assert!(s.max_wheel_speed_rad_s > 0.85 * p.limits.wheel_speed);
 }
 
-/// Steering chatter of a wheel: reversals of its measured steering angle's direction of
-/// motion, of at least [`CHATTER_AMPLITUDE`] each, while its commanded rolling speed is below
-/// 1 cm/s (a turning point counts once the angle has come back by the amplitude from the
-/// last extreme: the drive's small settling at the end of a turn does not count, a wheel that
-/// flips or oscillates does).
+/// Steering chatter of a wheel ([`steering_chatter`]).
 fn chatter(out: &RunOutcome, wheel: usize) -> usize {
-    let r = out.platform.wheel_radius;
-    let mut reversals = 0;
-    // (extreme angle, direction of motion: +1, −1 or 0 unknown)
-    let mut state: Option<(f64, f64)> = None;
-    let mut base = 0.0;
-    for rec in &out.records {
-        let slow = (rec.command.wheels[wheel].wheel_speed * r).abs() < 0.01;
-        if !slow {
-            state = None;
-            continue;
-        }
-        let a = rec.measurement.wheels[wheel].steer_angle;
-        let Some((ext, dir)) = state else {
-            state = Some((a, 0.0));
-            base = a;
-            continue;
-        };
-        let d = rollbase_control::angle::diff(a, ext);
-        if dir == 0.0 {
-            if rollbase_control::angle::diff(a, base).abs() >= CHATTER_AMPLITUDE {
-                state = Some((a, rollbase_control::angle::diff(a, base).signum()));
-            }
-        } else if d * dir > 0.0 {
-            state = Some((a, dir));
-        } else if d.abs() >= CHATTER_AMPLITUDE {
-            reversals += 1;
-            state = Some((a, -dir));
-        }
-    }
-    reversals
+    steering_chatter(&out.records, out.platform.wheel_radius, wheel)
 }
 
-/// Smallest back-and-forth of a steering angle that counts as chatter (1°).
-const CHATTER_AMPLITUDE: f64 = 0.017_453_292_519_943_295;
-
 /// Largest change of a wheel's measured steering angle while its commanded rolling speed is
-/// below 1 cm/s (a flip would be about π).
+/// below 1 cm/s ([`steering_turn_while_slow`]; a flip would be about π).
 fn turn_while_slow(out: &RunOutcome, wheel: usize) -> f64 {
-    turn_while_slow_in(&out.records, out.platform.wheel_radius, wheel)
+    steering_turn_while_slow(&out.records, out.platform.wheel_radius, wheel)
 }
 
 /// [`turn_while_slow`] from the first cycle the wheel's commanded rolling speed exceeds
@@ -165,23 +129,7 @@ fn turn_while_slow_once_rolling(out: &RunOutcome, wheel: usize) -> f64 {
         .iter()
         .position(|rec| (rec.command.wheels[wheel].wheel_speed * r).abs() > 0.02)
         .unwrap_or(out.records.len());
-    turn_while_slow_in(&out.records[first..], r, wheel)
-}
-
-fn turn_while_slow_in(records: &[CycleRecord], r: f64, wheel: usize) -> f64 {
-    let mut worst = 0.0f64;
-    let mut anchor: Option<f64> = None;
-    for rec in records {
-        let slow = (rec.command.wheels[wheel].wheel_speed * r).abs() < 0.01
-            && rec.state == SupervisorState::Tracking;
-        let a = rec.measurement.wheels[wheel].steer_angle;
-        match (slow, anchor) {
-            (true, None) => anchor = Some(a),
-            (true, Some(a0)) => worst = worst.max(rollbase_control::angle::diff(a, a0).abs()),
-            (false, _) => anchor = None,
-        }
-    }
-    worst
+    steering_turn_while_slow(&out.records[first..], r, wheel)
 }
 
 fn pivot_about(wheel: usize, omega: f64) -> (f64, f64, f64) {

@@ -9,11 +9,11 @@ use rollbase_control::runtime::{
     run_lockstep, CycleCore, RunSummary, RuntimeConfig, VirtualLockstepBus,
 };
 use rollbase_control::scenario::Scenario;
-use rollbase_control::supervisor::SupervisorState;
 use rollbase_control::timescale::Timing;
 use rollbase_control::trajectory::{QuinticSpline, Trajectory, WaypointSpec};
 use rollbase_control::{Platform, ZVec};
 use rollbase_driver::fault::FaultModel;
+use rollbase_tests::{steering_chatter, steering_turn_while_slow};
 use rollbase_vcan_sim::{InitialState, SimConfig, Simulator};
 
 /// What one run produced.
@@ -136,60 +136,15 @@ fn assert_bounds(name: &str, o: &Outcome) {
     );
 }
 
-/// Smallest back-and-forth of a steering angle that counts as chatter (1°).
-const CHATTER_AMPLITUDE: f64 = 0.017_453_292_519_943_295;
-
-/// Steering chatter of a wheel (the measure of e2e_drive.rs): reversals of its measured
-/// steering angle's direction of motion, of at least [`CHATTER_AMPLITUDE`] each, while its
-/// commanded rolling speed is below 1 cm/s.
+/// Steering chatter of a wheel ([`steering_chatter`], the measure of e2e_drive.rs).
 fn chatter(o: &Outcome, wheel: usize) -> usize {
-    let r = o.platform.wheel_radius;
-    let mut reversals = 0;
-    let mut state: Option<(f64, f64)> = None;
-    let mut base = 0.0;
-    for rec in &o.records {
-        if (rec.command.wheels[wheel].wheel_speed * r).abs() >= 0.01 {
-            state = None;
-            continue;
-        }
-        let a = rec.measurement.wheels[wheel].steer_angle;
-        let Some((ext, dir)) = state else {
-            state = Some((a, 0.0));
-            base = a;
-            continue;
-        };
-        let d = rollbase_control::angle::diff(a, ext);
-        if dir == 0.0 {
-            if rollbase_control::angle::diff(a, base).abs() >= CHATTER_AMPLITUDE {
-                state = Some((a, rollbase_control::angle::diff(a, base).signum()));
-            }
-        } else if d * dir > 0.0 {
-            state = Some((a, dir));
-        } else if d.abs() >= CHATTER_AMPLITUDE {
-            reversals += 1;
-            state = Some((a, -dir));
-        }
-    }
-    reversals
+    steering_chatter(&o.records, o.platform.wheel_radius, wheel)
 }
 
 /// Largest change of a wheel's measured steering angle while it is commanded to roll slower
-/// than 1 cm/s during tracking (a flip would be about π).
+/// than 1 cm/s during tracking ([`steering_turn_while_slow`]; a flip would be about π).
 fn turn_while_slow(o: &Outcome, wheel: usize) -> f64 {
-    let r = o.platform.wheel_radius;
-    let mut worst = 0.0f64;
-    let mut anchor: Option<f64> = None;
-    for rec in &o.records {
-        let slow = (rec.command.wheels[wheel].wheel_speed * r).abs() < 0.01
-            && rec.state == SupervisorState::Tracking;
-        let a = rec.measurement.wheels[wheel].steer_angle;
-        match (slow, anchor) {
-            (true, None) => anchor = Some(a),
-            (true, Some(a0)) => worst = worst.max(rollbase_control::angle::diff(a, a0).abs()),
-            (false, _) => anchor = None,
-        }
-    }
-    worst
+    steering_turn_while_slow(&o.records, o.platform.wheel_radius, wheel)
 }
 
 /// The platform turns by `turn` rad about wheel `k`'s contact point in `secs` (waypoints
