@@ -147,6 +147,12 @@ fn lockstep_demo_json_has_the_documented_fields() {
     }
     assert_eq!(v["supervisor_final_state"], "stopped");
     assert!(v["max_position_error_m"].as_f64().unwrap() < 0.005);
+    // Where the platform ended, as the driver estimates it: seed 000's goal (4.5 m, 4.5 m).
+    let (x, y) = (
+        v["final_pose"]["x"].as_f64().expect("final_pose.x"),
+        v["final_pose"]["y"].as_f64().expect("final_pose.y"),
+    );
+    assert!((x - 4.5).abs() < 0.01 && (y - 4.5).abs() < 0.01, "{v}");
 }
 
 /// Parses `| label | … | load % |` rows of the bus-load table into (label, frames/cycle, load %).

@@ -780,3 +780,88 @@ fn bad_command_lines_are_rejected_and_counted_and_the_service_drives_on() {
     }
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// The terminal mode flags of a tty (`c_lflag`).
+fn local_mode(fd: std::os::fd::RawFd) -> libc::tcflag_t {
+    // SAFETY: tcgetattr fills the termios value it is given for an open fd.
+    unsafe {
+        let mut t: libc::termios = std::mem::zeroed();
+        assert_eq!(
+            libc::tcgetattr(fd, &mut t),
+            0,
+            "tcgetattr on the test's pty"
+        );
+        t.c_lflag
+    }
+}
+
+/// `rollbase demo --teleop` on a terminal (a pseudo-terminal the test holds, as a user's
+/// shell would): W held moves the simulated platform forward, Esc quits with a controlled
+/// stop and exit 0, the key help and a status line are shown, and the terminal is left in the
+/// mode it had (echo and line editing back on: a teleop that left the shell without echo was a
+/// bug once).
+#[test]
+fn teleop_on_a_terminal_drives_forward_quits_on_esc_and_restores_the_terminal() {
+    use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+    let _serial = serial();
+    let (master, slave) = {
+        let (mut m, mut s) = (-1, -1);
+        // SAFETY: openpty writes two new fds into m and s; the null pointers ask for no name,
+        // no termios and no window size.
+        let rc = unsafe {
+            libc::openpty(
+                &mut m,
+                &mut s,
+                std::ptr::null_mut(),
+                std::ptr::null(),
+                std::ptr::null(),
+            )
+        };
+        assert_eq!(rc, 0, "openpty: {}", std::io::Error::last_os_error());
+        // SAFETY: both fds are new and owned by nothing else.
+        unsafe { (OwnedFd::from_raw_fd(m), OwnedFd::from_raw_fd(s)) }
+    };
+    let mode = local_mode(slave.as_raw_fd());
+    assert_ne!(mode & libc::ECHO, 0, "a new pty echoes");
+    assert_ne!(mode & libc::ICANON, 0, "a new pty edits lines");
+    let mut teleop = Proc::spawn(
+        "demo --teleop",
+        rollbase()
+            .args(["demo", "--teleop", "--json"])
+            .stdin(Stdio::from(slave.try_clone().expect("dup of the pty"))),
+    );
+    let mut keys = std::fs::File::from(master);
+    // W held (a terminal's key repeat) for 6 s: boot, align, roll forward.
+    let start = Instant::now();
+    while start.elapsed() < Duration::from_secs(6) {
+        if keys.write_all(b"w").is_err() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let _ = keys.write_all(b"\x1b");
+    let (status, stdout) = teleop.wait();
+    let stderr = teleop.stderr();
+    assert_eq!(status.code(), Some(0), "{stderr}");
+    assert!(stderr.contains("teleop: arrows/WASD move"), "{stderr}");
+    assert!(stderr.contains("tracking"), "no status line: {stderr}");
+    let v = summary(&stdout);
+    assert_eq!(v["supervisor_final_state"], "stopped", "{v}");
+    assert_eq!(v["rejected_commands"], 0, "{v}");
+    let x = v["final_pose"]["x"].as_f64().expect("final_pose.x");
+    let y = v["final_pose"]["y"].as_f64().expect("final_pose.y");
+    // Forward at 0.3 m/s for a few seconds (how many depends on the boot on a busy machine);
+    // straight: no sideways drift beyond the tracking bounds.
+    assert!(x > 0.2 && y.abs() < 0.01, "final pose ({x}, {y}): {stderr}");
+    let mode = local_mode(slave.as_raw_fd());
+    assert_ne!(
+        mode & libc::ECHO,
+        0,
+        "teleop left the terminal without echo"
+    );
+    assert_ne!(
+        mode & libc::ICANON,
+        0,
+        "teleop left the terminal without line editing"
+    );
+}

@@ -710,7 +710,14 @@ pub(crate) fn print_summary(
     outln!("  {:<28} {:>12}", "deadline_misses", s.deadline_misses);
     row("max_position_error_m", "mm", 1e3);
     row("final_position_error_m", "mm", 1e3);
-    row("max_heading_error_rad", "deg", 180.0 / std::f64::consts::PI);
+    // The JSON's key is in rad; the table shows degrees under a unit-free name.
+    {
+        let v = j["max_heading_error_rad"]
+            .as_f64()
+            .map(|x| format!("{:.3}", x.to_degrees()))
+            .unwrap_or_else(|| "-".into());
+        outln!("  {:<28} {v:>12} deg", "max_heading_error");
+    }
     row("max_leg_error_m", "mm", 1e3);
     row("max_direction_error_deg", "deg", 1.0);
     row("max_wheel_speed_rad_s", "rad/s", 1.0);
@@ -725,6 +732,15 @@ pub(crate) fn print_summary(
     outln!("  {:<28} {:>12}", "command_timeouts", s.command_timeouts);
     outln!("  {:<28} {:>12}", "rejected_commands", s.rejected_commands);
     outln!("  {:<28} {:>12}", "supervisor_final_state", s.final_state);
+    if let Some(p) = s.final_pose {
+        outln!(
+            "  {:<28} x {:.3} m, y {:.3} m, θ {:.2}°",
+            "final_pose (estimate)",
+            p.x,
+            p.y,
+            p.theta.to_degrees()
+        );
+    }
     if let Some(r) = reason {
         outln!("  fault: {r}");
     }

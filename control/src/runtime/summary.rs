@@ -60,6 +60,9 @@ pub struct RunSummary {
     /// the slowest scale and what limits it there (`None`: live commands or an unscaled
     /// trajectory). Set by the caller from [`super::CycleCore::trajectory_timing`].
     pub timing: Option<crate::timescale::Timing>,
+    /// The pose estimate (odometry) of the last cycle: where the platform ended up, as the
+    /// driver knows it (`None` before the first cycle).
+    pub final_pose: Option<crate::types::Pose>,
     prev: Option<PrevCycle>,
     stop_started: Option<f64>,
 }
@@ -164,6 +167,7 @@ impl RunSummary {
         }
         self.final_state = r.state.name().into();
         self.fault_reason = r.reason.map(|x| x.to_string());
+        self.final_pose = Some(r.pose);
         let tracking = matches!(
             r.state,
             SupervisorState::Tracking | SupervisorState::Stopping | SupervisorState::Stopped
@@ -268,6 +272,9 @@ impl RunSummary {
             "duration_executed_s": self.timing.map(|t| f(t.executed_duration_s)),
             "time_scale_min": self.timing.map(|t| f(t.min_scale)),
             "time_scale_min_at_s": self.timing.map(|t| f(t.min_scale_at_s)),
+            "final_pose": self.final_pose.map(|p| serde_json::json!({
+                "x": f(p.x), "y": f(p.y), "theta": f(p.theta),
+            })),
             "time_scale_limit": self.timing.and_then(|t| {
                 (t.limiting != crate::ports::Limiting::None)
                     .then(|| format!("wheel {} {}", t.wheel + 1, t.limiting.name()))
