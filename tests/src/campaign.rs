@@ -1038,12 +1038,30 @@ pub fn bad_input() -> CaseResult {
         }
         Ok(_) => c.check(false, "unreachable leg accepted"),
     }
-    // Limits that make the scenario infeasible: wheel speed limit far below seed 000's need.
+    // Limits below what seed 000 asks at its given timing are no longer a refusal: the time
+    // scaling (issue 18) stretches the run into them. A wheel speed limit of 1 rad/s runs,
+    // slower.
     let mut slow = Platform::justin();
     slow.limits.wheel_speed = 1.0;
     let traj = scenario::trajectory(Scenario::Seed000, &slow);
     match traj.map_err(|e| e.to_string()).and_then(|t| {
         CycleCore::new(slow.clone(), t, RuntimeConfig::default()).map_err(|e| e.to_string())
+    }) {
+        Ok(core) => {
+            let stretched = core.trajectory_timing().map(|t| t.min_scale);
+            c.check(
+                stretched.is_some_and(|s| s < 1.0),
+                format!("wheel_speed 1 rad/s runs, but not slowed: {stretched:?}"),
+            );
+        }
+        Err(e) => c.check(false, format!("a stretchable trajectory refused: {e}")),
+    }
+    // Limits no timing can meet within a run's 10 h: refused before start, naming the limit.
+    let mut hopeless = Platform::justin();
+    hopeless.limits.wheel_speed = 1e-4;
+    let traj = scenario::trajectory(Scenario::Seed000, &hopeless);
+    match traj.map_err(|e| e.to_string()).and_then(|t| {
+        CycleCore::new(hopeless.clone(), t, RuntimeConfig::default()).map_err(|e| e.to_string())
     }) {
         Err(e) => {
             c.check(e.contains("wheel_speed"), format!("infeasible: {e}"));
