@@ -194,6 +194,37 @@ pub fn run(opts: &RunOptions) -> RunOutcome {
     run_with(opts, &mut |_, _| {})
 }
 
+/// The tracking bounds every closed-loop acceptance test holds a run to (seed 000, live
+/// commands, time-scaled trajectories): it ends in Stopped, and its errors against the
+/// simulator's ground truth, relative to the reference the controller followed, stay below
+/// 5 mm (position), 0.5° (heading) and 2 mm (legs). `what` names the run in the messages.
+pub fn assert_tracking_bounds(s: &RunSummary, what: &str) {
+    assert_eq!(
+        s.final_state, "stopped",
+        "{what}: the run must end in Stopped: {:?}",
+        s.fault_reason
+    );
+    assert!(
+        s.against_truth,
+        "{what}: errors are measured against the simulator's ground truth"
+    );
+    assert!(
+        s.max_position_error_m < 0.005,
+        "{what}: max position error {} mm",
+        s.max_position_error_m * 1e3
+    );
+    assert!(
+        s.max_heading_error_rad < 0.5f64.to_radians(),
+        "{what}: max heading error {}°",
+        s.max_heading_error_rad.to_degrees()
+    );
+    assert!(
+        s.max_leg_error_m < 0.002,
+        "{what}: max leg error {} mm",
+        s.max_leg_error_m * 1e3
+    );
+}
+
 /// The seed-000 acceptance bounds, one definition for every wire profile: the run ends in
 /// Stopped, errors against the simulator's ground truth stay below 5 mm (position), 0.5°
 /// (heading) and 2 mm (legs), no frame is rejected on a clean bus, the measured wheel speeds
@@ -201,30 +232,7 @@ pub fn run(opts: &RunOptions) -> RunOutcome {
 /// 5 mm and 0.5° of the goal (4.5 m, 4.5 m, 2π).
 pub fn assert_seed000_bounds(out: &RunOutcome) {
     let s = &out.summary;
-    assert_eq!(
-        s.final_state, "stopped",
-        "run must end in Stopped: {:?}",
-        s.fault_reason
-    );
-    assert!(
-        s.against_truth,
-        "errors are measured against the simulator's ground truth"
-    );
-    assert!(
-        s.max_position_error_m < 0.005,
-        "max position error {} m",
-        s.max_position_error_m
-    );
-    assert!(
-        s.max_heading_error_rad < 0.5f64.to_radians(),
-        "max heading error {}°",
-        s.max_heading_error_rad.to_degrees()
-    );
-    assert!(
-        s.max_leg_error_m < 0.002,
-        "max leg error {} m",
-        s.max_leg_error_m
-    );
+    assert_tracking_bounds(s, "seed 000");
     assert_eq!(s.rejected_frames, 0, "a clean bus rejects nothing");
     let p = &out.platform;
     assert!(s.max_wheel_speed_rad_s <= p.limits.wheel_speed + 1e-9);

@@ -44,24 +44,7 @@ fn schedule(steps: &[(f64, f64, f64, Option<[f64; 4]>)], hold: f64) -> Vec<Comma
 
 /// The tracking bounds, against the shaped reference.
 fn assert_tracking_bounds(out: &RunOutcome) {
-    let s = &out.summary;
-    assert!(s.against_truth, "errors against the simulator's truth");
-    assert_eq!(s.final_state, "stopped", "{:?}", s.fault_reason);
-    assert!(
-        s.max_position_error_m < 0.005,
-        "max position error {} mm",
-        s.max_position_error_m * 1e3
-    );
-    assert!(
-        s.max_heading_error_rad < 0.5f64.to_radians(),
-        "max heading error {}°",
-        s.max_heading_error_rad.to_degrees()
-    );
-    assert!(
-        s.max_leg_error_m < 0.002,
-        "max leg error {} mm",
-        s.max_leg_error_m * 1e3
-    );
+    rollbase_tests::assert_tracking_bounds(&out.summary, &out.summary.scenario);
 }
 
 #[test]

@@ -13,7 +13,7 @@ use rollbase_control::timescale::Timing;
 use rollbase_control::trajectory::{QuinticSpline, Trajectory, WaypointSpec};
 use rollbase_control::{Platform, ZVec};
 use rollbase_driver::fault::FaultModel;
-use rollbase_tests::{steering_chatter, steering_turn_while_slow};
+use rollbase_tests::{assert_tracking_bounds, steering_chatter, steering_turn_while_slow};
 use rollbase_vcan_sim::{InitialState, SimConfig, Simulator};
 
 /// What one run produced.
@@ -101,26 +101,7 @@ fn assert_bounds(name: &str, o: &Outcome) {
         s.to_json()["time_scale_limit"],
         t.max_ratio
     );
-    assert_eq!(s.final_state, "stopped", "{name}: {:?}", s.fault_reason);
-    assert!(
-        s.against_truth,
-        "{name}: errors against the simulator's truth"
-    );
-    assert!(
-        s.max_position_error_m < 0.005,
-        "{name}: max position error {} mm",
-        s.max_position_error_m * 1e3
-    );
-    assert!(
-        s.max_heading_error_rad < 0.5f64.to_radians(),
-        "{name}: max heading error {}°",
-        s.max_heading_error_rad.to_degrees()
-    );
-    assert!(
-        s.max_leg_error_m < 0.002,
-        "{name}: max leg error {} mm",
-        s.max_leg_error_m * 1e3
-    );
+    assert_tracking_bounds(s, name);
     let p = &o.platform;
     for w in o.records.windows(2) {
         if let Some(v) =
