@@ -169,11 +169,11 @@ fn split_type(def: &msg::MsgDef) -> (&str, &str) {
     (pkg, ty)
 }
 
-/// A publisher of `T` on `topic` with ROS 2's default QoS (also for peers in tools and tests).
-pub fn publisher<T: RosMsg + ros2_client::Message>(
+/// The topic `T` is published or subscribed on, with ROS 2's default QoS.
+fn ros_topic<T: RosMsg>(
     node: &mut Node,
     topic: &str,
-) -> Result<Publisher<T>, Ros2Error> {
+) -> Result<(ros2_client::dds::rustdds::Topic, QosProfile), Ros2Error> {
     let (pkg, ty) = split_type(T::DEF);
     let qos = ros_default_qos();
     let name = Name::parse(topic).map_err(|e| Ros2Error::Entity {
@@ -184,6 +184,15 @@ pub fn publisher<T: RosMsg + ros2_client::Message>(
     let t = node
         .create_topic(&name, MessageTypeName::new(pkg, ty), &qos)
         .map_err(entity_err("topic", topic))?;
+    Ok((t, qos))
+}
+
+/// A publisher of `T` on `topic` with ROS 2's default QoS (also for peers in tools and tests).
+pub fn publisher<T: RosMsg + ros2_client::Message>(
+    node: &mut Node,
+    topic: &str,
+) -> Result<Publisher<T>, Ros2Error> {
+    let (t, qos) = ros_topic::<T>(node, topic)?;
     node.create_publisher::<T>(&t, Some(qos))
         .map_err(entity_err("publisher", topic))
 }
@@ -193,16 +202,7 @@ pub fn subscription<T: RosMsg + ros2_client::Message + 'static>(
     node: &mut Node,
     topic: &str,
 ) -> Result<ros2_client::dds::Subscription<T>, Ros2Error> {
-    let (pkg, ty) = split_type(T::DEF);
-    let qos = ros_default_qos();
-    let name = Name::parse(topic).map_err(|e| Ros2Error::Entity {
-        what: "topic",
-        name: topic.into(),
-        message: format!("{e:?}"),
-    })?;
-    let t = node
-        .create_topic(&name, MessageTypeName::new(pkg, ty), &qos)
-        .map_err(entity_err("topic", topic))?;
+    let (t, qos) = ros_topic::<T>(node, topic)?;
     node.create_subscription::<T>(&t, Some(qos))
         .map_err(entity_err("subscription", topic))
 }

@@ -115,6 +115,21 @@ fn turn_while_slow_once_rolling(out: &RunOutcome, wheel: usize) -> f64 {
     steering_turn_while_slow(&out.records[first..], r, wheel)
 }
 
+/// A run that ends stopped within the tracking bounds and the limits, in which `wheel`
+/// neither chatters nor turns by 2° or more while slow once it has rolled (`what` names it).
+fn assert_held_wheel(out: &RunOutcome, wheel: usize, what: &str) {
+    eprintln!("{what}: {}", out.summary.to_json());
+    assert_commands_within_limits(out);
+    assert_tracking_bounds(out);
+    assert_eq!(chatter(out, wheel), 0, "{what} chatters");
+    let turn = turn_while_slow_once_rolling(out, wheel);
+    assert!(
+        turn < 2f64.to_radians(),
+        "{what} turned {:.2}° while slow",
+        turn.to_degrees()
+    );
+}
+
 fn pivot_about(wheel: usize, omega: f64) -> (f64, f64, f64) {
     let p = rollbase_control::Platform::justin();
     let a = p.wheels[wheel].alpha;
@@ -537,20 +552,7 @@ fn with_avoidance_on_the_pivot_and_the_sweep_do_not_chatter_and_stay_within_the_
             (vx, vy, om, None),
         ];
         let out = run_live(&o, &schedule(&steps, 4.0));
-        eprintln!("avoidance {mode}, pivot: {}", out.summary.to_json());
-        assert_commands_within_limits(&out);
-        assert_tracking_bounds(&out);
-        assert_eq!(
-            chatter(&out, 1),
-            0,
-            "avoidance {mode}: the pivot wheel chatters"
-        );
-        let turn = turn_while_slow_once_rolling(&out, 1);
-        assert!(
-            turn < 2f64.to_radians(),
-            "avoidance {mode}: the pivot wheel turned {:.2}° while slow",
-            turn.to_degrees()
-        );
+        assert_held_wheel(&out, 1, &format!("avoidance {mode}, the pivot wheel"));
         assert!(
             out.records.iter().any(|r| r.avoidance.active),
             "avoidance {mode}: the field of the pivot wheel was entered"
@@ -570,20 +572,7 @@ fn with_avoidance_on_the_pivot_and_the_sweep_do_not_chatter_and_stay_within_the_
         assert!(rot > 0.4, "avoidance {mode}: turned at {rot} rad/s");
 
         let out = run_live(&o, &sweep_commands());
-        eprintln!("avoidance {mode}, sweep: {}", out.summary.to_json());
-        assert_commands_within_limits(&out);
-        assert_tracking_bounds(&out);
-        assert_eq!(
-            chatter(&out, 0),
-            0,
-            "avoidance {mode}: the swept wheel chatters"
-        );
-        let turn = turn_while_slow_once_rolling(&out, 0);
-        assert!(
-            turn < 2f64.to_radians(),
-            "avoidance {mode}: the swept wheel turned {:.2}° while slow",
-            turn.to_degrees()
-        );
+        assert_held_wheel(&out, 0, &format!("avoidance {mode}, the swept wheel"));
         assert!(out.records.iter().any(|r| r.avoidance.active));
 
         far_beyond_every_limit(&o);
