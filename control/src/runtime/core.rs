@@ -21,7 +21,7 @@ use crate::record::{AvoidanceRecord, CycleRecord, FrameRecord, MAX_RECORDED_COMM
 use crate::shaper::Shaper;
 use crate::supervisor::FaultReason;
 use crate::supervisor::{
-    command_at_rest, halt_command, stop_command, Mode, Supervisor, SupervisorInput, SupervisorState,
+    command_at_rest, halt_command, Mode, Supervisor, SupervisorInput, SupervisorState,
 };
 use crate::trajectory::Trajectory;
 use crate::types::{Command, Measurement, ReferenceSample, Twist, MAX_WHEELS};
@@ -1411,6 +1411,14 @@ impl CycleCore {
         let guard =
             |c: Command, last: &Command| guard_command(&self.platform.limits, last, &c, dt).0;
         let (cmd, enable, brake, mode_name) = match mode {
+            // Drives are disabled only once every command is at zero: a steering rate still
+            // winding down (a fault at rest) ramps out within its limit first.
+            Mode::Disabled if self.last_cmd != Command::zero(self.n) => (
+                halt_command(&self.platform, &self.last_cmd, dt),
+                true,
+                false,
+                "decelerate",
+            ),
             Mode::Disabled => (Command::zero(self.n), false, false, "disabled"),
             Mode::Align => {
                 let (align_cmd, _) = alignment_command(&self.platform, meas, nominal);
@@ -1432,7 +1440,7 @@ impl CycleCore {
                     (guard(lead, &self.last_cmd), true, false, "track")
                 } else {
                     (
-                        stop_command(&self.platform, &self.last_cmd, dt),
+                        halt_command(&self.platform, &self.last_cmd, dt),
                         true,
                         false,
                         "decelerate",
@@ -1440,12 +1448,18 @@ impl CycleCore {
                 }
             }
             Mode::Decelerate => (
-                stop_command(&self.platform, &self.last_cmd, dt),
+                halt_command(&self.platform, &self.last_cmd, dt),
                 true,
                 false,
                 "decelerate",
             ),
-            Mode::Hold => (Command::zero(self.n), true, true, "hold"),
+            // At rest: whatever steering is still in motion winds down within its limit.
+            Mode::Hold => (
+                halt_command(&self.platform, &self.last_cmd, dt),
+                true,
+                true,
+                "hold",
+            ),
         };
         let at_rest_now = command_at_rest(&cmd, self.sup.config().rest_speed);
         if last_cycle && at_rest_now {
