@@ -4,6 +4,7 @@
 
 pub mod alloc_count;
 pub mod campaign;
+pub mod flow;
 
 use rollbase_control::record::CycleRecord;
 use rollbase_control::runtime::{
