@@ -149,6 +149,13 @@ pub const MAX_EXECUTED_S: f64 = crate::trajectory::MAX_WAYPOINT_TIME_S;
 /// A platform whose fastest wheel moves slower than this along the path (m/s at ṡ = 1) is at
 /// rest there (its wheels' directions are taken from the neighbouring points).
 const REST_W: f64 = 1e-9;
+/// Speed (m/s) of the fastest wheel at the clock's cap below which the platform is near a
+/// stop: its wheels' directions of travel are not steered by, they blend from the one before
+/// to the one after (the clock slows to let them turn within their limits: a planned dwell
+/// at a near stop, [`ScaledTrajectory::dwells`]).
+pub const NEAR_REST: f64 = 0.5 * HOLD_SPEED;
+/// Longest travel (m) of the platform along a near stop.
+pub const NEAR_REST_TRAVEL: f64 = 0.005;
 /// Direction change (rad) between two grid points beyond what the steering rate explains
 /// that is examined as a possible kink.
 const KINK_SUSPECT: f64 = 0.05;
@@ -250,8 +257,8 @@ pub struct Timing {
     pub nominal_duration_s: f64,
     /// Duration of the scaled trajectory (s), its dwells included.
     pub executed_duration_s: f64,
-    /// Duration of the time-optimal timing of the same path (s): the passes' timing before
-    /// the jerk smoothing, plus the planned dwells.
+    /// Duration of the time-optimal timing of the path's motions (s): the passes' timing
+    /// before the jerk smoothing, without the dwells ([`Timing::dwell_s`]).
     pub optimal_duration_s: f64,
     /// Planned dwells in all (s): the clock held at the path's stops while the wheels
     /// re-steer ([`ScaledTrajectory::dwells`]).
@@ -624,6 +631,9 @@ struct Piece {
     min: (f64, f64, Limiting, usize),
     /// Largest demand over its share found by the verification.
     max_ratio: f64,
+    /// The near stops (times from `t0`, s): where the platform passes a near stop and the
+    /// clock slows to let the wheels re-steer (reported with the dwells).
+    near: Vec<(f64, f64)>,
 }
 
 /// A planned dwell (module docs, "Stops and dwells"): the clock holds at a stop of the path
@@ -1104,7 +1114,19 @@ impl ScaledTrajectory {
             }
             max_ratio = max_ratio.max(q.max_ratio);
         }
-        let dwell_spans = dwells.iter().map(|d| (d.t0, d.t0 + d.duration)).collect();
+        // The dwells and the near stops, in order (overlapping ones merged).
+        let mut all: Vec<(f64, f64)> = dwells.iter().map(|d| (d.t0, d.t0 + d.duration)).collect();
+        for q in &pieces {
+            all.extend(q.near.iter().map(|&(a, b)| (q.t0 + a, q.t0 + b)));
+        }
+        all.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut dwell_spans: Vec<(f64, f64)> = Vec::with_capacity(all.len());
+        for (a, b) in all {
+            match dwell_spans.last_mut() {
+                Some(last) if a <= last.1 => last.1 = last.1.max(b),
+                _ => dwell_spans.push((a, b)),
+            }
+        }
         Ok(ScaledTrajectory {
             inner,
             platform: p.clone(),
@@ -1120,7 +1142,7 @@ impl ScaledTrajectory {
             timing: Timing {
                 nominal_duration_s: nominal,
                 executed_duration_s: executed,
-                optimal_duration_s: optimal + dwell_s,
+                optimal_duration_s: optimal,
                 dwell_s,
                 min_scale: if min.0.is_finite() { min.0 } else { 1.0 },
                 min_scale_at_s: min.1,
@@ -1147,7 +1169,8 @@ impl ScaledTrajectory {
     }
 
     /// The planned dwells (module docs, "Stops and dwells"): executed-time intervals (s) in
-    /// which the clock holds at a stop of the path while the wheels re-steer.
+    /// which the clock holds at a stop of the path while the wheels re-steer, and those in
+    /// which it passes a near stop slowly for the same reason.
     pub fn dwells(&self) -> &[(f64, f64)] {
         &self.dwell_spans
     }
@@ -1312,12 +1335,14 @@ impl Piece {
                 optimal: est,
                 min: (f64::INFINITY, 0.0, Limiting::None, 0),
                 max_ratio: 0.0,
+                near: Vec::new(),
             };
             if !pass {
                 piece.set_clock(taus, ys, ka);
             }
             let violations = piece.verify(p, inner, cfg, n, taus, &grid.caps, open);
             if violations.is_empty() || round == MAX_REPAIRS {
+                piece.near = piece.near_spans(taus, &near_stops(&grid));
                 return Ok(piece);
             }
             // Lower the bounds around each violation: over the path the smoothing window
@@ -1616,6 +1641,31 @@ impl Piece {
         self.reason = reason;
         self.min = min;
         self.max_ratio = worst;
+        out
+    }
+
+    /// The executed-time spans (from the piece's start) of the runs of near-stop grid points.
+    fn near_spans(&self, taus: &[f64], near: &[bool]) -> Vec<(f64, f64)> {
+        let time = |j: usize| {
+            if self.pass {
+                taus[j] - self.tau0
+            } else {
+                self.kt.get(j).copied().unwrap_or(self.duration)
+            }
+        };
+        let mut out = Vec::new();
+        let mut j = 0;
+        while j < near.len() {
+            if !near[j] {
+                j += 1;
+                continue;
+            }
+            let start = j;
+            while j < near.len() && near[j] {
+                j += 1;
+            }
+            out.push((time(start), time(j - 1)));
+        }
         out
     }
 
@@ -1970,6 +2020,7 @@ fn steering_geometry(
         blends: vec![Vec::new(); n],
     };
     let mut steer_needed = false;
+    let near = near_stops(g);
     for i in 0..n {
         // Points held only because the wheel never reaches HOLD_SPEED there (the controllers
         // hold it by themselves; they need no steering reference for it).
@@ -1982,7 +2033,10 @@ fn steering_geometry(
         for j in 0..points {
             let wmax = g.wmax[j];
             let q = &mut g.geo[j * n + i];
-            if wmax <= REST_W || q.speed <= 0.0 {
+            // The whole platform slower than NEAR_REST even at the clock's cap: a near stop,
+            // where no wheel's direction of travel means anything (module docs, "Stops and
+            // dwells").
+            if wmax <= REST_W || q.speed <= 0.0 || near[j] {
                 q.defined = false;
                 continue;
             }
@@ -2099,10 +2153,23 @@ fn steering_geometry(
             // from the nearest steered point, so the steering rate has no step. A wheel held
             // while the platform moves holds its angle.
             let at_rest = (start..end).all(|k| g.wmax[k] <= REST_W);
+            let near_rest = !at_rest && (start..end).all(|k| near[k]);
             let blend = if start == 0 {
                 let q = g.geo[first * n + i];
                 let h = taus[first] - taus[0];
-                let coef = if at_rest {
+                let coef = if near_rest {
+                    // From rest, the rate building up over the stretch to the first steered
+                    // point's.
+                    quintic(
+                        q.angle - 0.5 * q.rate * h,
+                        0.0,
+                        0.0,
+                        q.angle,
+                        q.rate,
+                        q.accel,
+                        h,
+                    )
+                } else if at_rest {
                     [
                         q.angle - q.rate * h + 0.5 * q.accel * h * h,
                         q.rate - q.accel * h,
@@ -2121,7 +2188,19 @@ fn steering_geometry(
                 }
             } else if end == points {
                 let q = g.geo[(start - 1) * n + i];
-                let coef = if at_rest {
+                let h = taus[points - 1] - taus[start - 1];
+                let coef = if near_rest {
+                    // To rest over the stretch.
+                    quintic(
+                        q.angle,
+                        q.rate,
+                        q.accel,
+                        q.angle + 0.5 * q.rate * h,
+                        0.0,
+                        0.0,
+                        h,
+                    )
+                } else if at_rest {
                     [q.angle, q.rate, 0.5 * q.accel, 0.0, 0.0, 0.0]
                 } else {
                     [q.angle, 0.0, 0.0, 0.0, 0.0, 0.0]
@@ -2159,6 +2238,36 @@ fn steering_geometry(
         }
     }
     Ok((sg, steer_needed))
+}
+
+/// The grid points of the path's near stops (module docs, "Stops and dwells"): maximal runs
+/// of points where the fastest wheel is slower than [`NEAR_REST`] at the clock's cap, along
+/// which the platform travels less than [`NEAR_REST_TRAVEL`] (a deliberately slow motion
+/// over a longer distance is steered by its directions as any other).
+fn near_stops(g: &Grid) -> Vec<bool> {
+    let points = g.points();
+    let mut near = vec![false; points];
+    let mut j = 0;
+    while j < points {
+        if g.wmax[j] * g.caps[j] >= NEAR_REST {
+            j += 1;
+            continue;
+        }
+        let start = j;
+        let mut travel = 0.0;
+        while j < points && g.wmax[j] * g.caps[j] < NEAR_REST {
+            if j > start {
+                travel += 0.5 * (g.wmax[j] + g.wmax[j - 1]) * (g.taus[j] - g.taus[j - 1]);
+            }
+            j += 1;
+        }
+        if travel <= NEAR_REST_TRAVEL {
+            for v in &mut near[start..j] {
+                *v = true;
+            }
+        }
+    }
+    near
 }
 
 /// Whether wheel `i`'s direction of travel jumps between path times `a` and `b`: bisects

@@ -1068,22 +1068,17 @@ pub struct PlanTiming {
     pub dwells: Vec<(f64, f64)>,
 }
 
-/// The one adapter to the time scaling's dwell and optimal-timing API.
-///
-/// LEAD: issue 23 adds `ScaledTrajectory::dwells(&self) -> &[(f64, f64)]`,
-/// `Timing::optimal_duration_s` and `Timing::dwell_s` to control/src/timescale.rs. Until they
-/// exist this returns no dwells and the plan's executed duration as the "optimal" one, so the
-/// bound executed ≤ 1.25 × (optimal + dwells) only compares the run with its own plan. Replace
-/// the body with:
-/// `optimal_s: plan.timing().optimal_duration_s, dwell_s: plan.timing().dwell_s,
-/// dwells: plan.dwells().to_vec()`.
+/// The plan's timing: its executed duration, the time-optimal timing of the path's motions
+/// ([`rollbase_control::timescale::Timing::optimal_duration_s`]: the passes' timing before the
+/// jerk smoothing), the dwells in all and each dwell's executed-time interval
+/// ([`ScaledTrajectory::dwells`]).
 pub fn plan_timing(plan: &ScaledTrajectory) -> PlanTiming {
-    let planned_s = plan.duration();
+    let t = plan.timing().expect("a scaled trajectory has a timing");
     PlanTiming {
-        planned_s,
-        optimal_s: planned_s,
-        dwell_s: 0.0,
-        dwells: Vec::new(),
+        planned_s: plan.duration(),
+        optimal_s: t.optimal_duration_s,
+        dwell_s: t.dwell_s,
+        dwells: plan.dwells().to_vec(),
     }
 }
 
