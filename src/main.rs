@@ -11,17 +11,22 @@ use clap::Parser;
 use std::io::Write as _;
 
 /// Installs the log subscriber: `tracing` events go to stderr, filtered by `RUST_LOG`
-/// (default `info`; e.g. `RUST_LOG=debug` adds one line per client event of the bridge).
+/// (default `info,rustdds=warn`; e.g. `RUST_LOG=debug` adds one line per client event of the
+/// bridge). The DDS stack's `log` records (rustdds) are bridged into the same output
+/// (tracing-log), under their module paths: `RUST_LOG=info,rustdds=debug` shows its discovery.
 /// Writing never fails the program: the fmt layer drops lines stderr does not take (a closed
 /// pipe, a full disk) and, with `log_internal_errors(false)`, does not report that on stderr
 /// either (that report would itself fail). Calling it twice is harmless.
 pub fn init_logging() {
     use std::io::IsTerminal as _;
     use tracing_subscriber::EnvFilter;
+    const DEFAULT: &str = "info,rustdds=warn";
+    let unset = std::env::var("RUST_LOG").map_or(true, |v| v.trim().is_empty());
     let (filter, bad) = match EnvFilter::try_from_default_env() {
-        Ok(f) => (f, None),
+        Ok(f) if !unset => (f, None),
+        Ok(_) => (EnvFilter::new(DEFAULT), None),
         Err(e) => (
-            EnvFilter::new("info"),
+            EnvFilter::new(DEFAULT),
             std::env::var("RUST_LOG").ok().map(|v| (v, e)),
         ),
     };
@@ -37,7 +42,7 @@ pub fn init_logging() {
     if let (true, Some((value, e))) = (installed, bad) {
         // An empty RUST_LOG is "unset", not an error worth a line.
         if !value.trim().is_empty() {
-            tracing::warn!("RUST_LOG={value:?} is not a valid filter ({e}); logging at info");
+            tracing::warn!("RUST_LOG={value:?} is not a valid filter ({e}); logging at {DEFAULT}");
         }
     }
 }
