@@ -11,20 +11,26 @@ use clap::Parser;
 use std::io::Write as _;
 
 /// Installs the log subscriber: `tracing` events go to stderr, filtered by `RUST_LOG`
-/// (default `info,rustdds=warn`; e.g. `RUST_LOG=debug` adds one line per client event of the
-/// bridge). The DDS stack's `log` records (rustdds) are bridged into the same output
-/// (tracing-log), under their module paths: `RUST_LOG=info,rustdds=debug` shows its discovery.
+/// (default `info`; e.g. `RUST_LOG=debug` adds one line per client event of the bridge).
+/// The DDS stack's `log` records (rustdds) are bridged into the same output (tracing-log),
+/// under their module paths, at `error` unless `RUST_LOG` names `rustdds`:
+/// `RUST_LOG=info,rustdds=warn` shows its warnings (on a loopback without multicast it warns
+/// about its own built-in readers many times a second, hence the quiet default).
 /// Writing never fails the program: the fmt layer drops lines stderr does not take (a closed
 /// pipe, a full disk) and, with `log_internal_errors(false)`, does not report that on stderr
 /// either (that report would itself fail). Calling it twice is harmless.
 pub fn init_logging() {
     use std::io::IsTerminal as _;
     use tracing_subscriber::EnvFilter;
-    const DEFAULT: &str = "info,rustdds=warn";
-    let unset = std::env::var("RUST_LOG").map_or(true, |v| v.trim().is_empty());
+    const DEFAULT: &str = "info,rustdds=error";
+    let value = std::env::var("RUST_LOG").unwrap_or_default();
     let (filter, bad) = match EnvFilter::try_from_default_env() {
-        Ok(f) if !unset => (f, None),
-        Ok(_) => (EnvFilter::new(DEFAULT), None),
+        Ok(f) if value.contains("rustdds") => (f, None),
+        Ok(_) if value.trim().is_empty() => (EnvFilter::new(DEFAULT), None),
+        Ok(f) => match "rustdds=error".parse() {
+            Ok(d) => (f.add_directive(d), None),
+            Err(_) => (f, None),
+        },
         Err(e) => (
             EnvFilter::new(DEFAULT),
             std::env::var("RUST_LOG").ok().map(|v| (v, e)),
