@@ -47,6 +47,9 @@ if only_loopback():
     ROS_QOS = Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.Durability.Volatile, Policy.History.KeepLast(10))
     BEST_EFFORT = Qos(Policy.Reliability.BestEffort, Policy.Durability.Volatile, Policy.History.KeepLast(10))
     LATCHED = Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.Durability.TransientLocal, Policy.History.KeepLast(1))
+    # A reader of latched topics keeps more: keyless samples of every writer are one instance,
+    # so with depth 1 one participant's announcement replaces another's before it is taken.
+    LATCHED_READER = Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.Durability.TransientLocal, Policy.History.KeepLast(100))
 
     # rmw_dds_common/msg/ParticipantEntitiesInfo in both layouts, from the .msg files of Humble
     # (Gid: char[24] data) and Jazzy (Gid: uint8[16] data). Same DDS type names, as on the wire.
@@ -235,7 +238,7 @@ def test_node_announced_in_the_peers_discovery_layout(layout):
         dp = DomainParticipant(domain)
         topic = Topic(dp, "ros_discovery_info", Info, qos=LATCHED)
         w = DataWriter(dp, topic, qos=LATCHED)
-        r = DataReader(dp, topic, qos=LATCHED)
+        r = DataReader(dp, topic, qos=LATCHED_READER)
         my_gid = Gid(data=list(range(1, 17)) + [0] * (layout - 16))
         w.write(Info(gid=my_gid, node_entities_info_seq=[Node(node_namespace="/", node_name="operator")]))
         t0 = time.monotonic()
@@ -279,7 +282,7 @@ def test_ros_distro_chooses_the_layout_without_a_peer():
             os.environ["ROS_DISTRO"] = old
     try:
         dp = DomainParticipant(domain)
-        r = DataReader(dp, Topic(dp, "ros_discovery_info", Info24, qos=LATCHED), qos=LATCHED)
+        r = DataReader(dp, Topic(dp, "ros_discovery_info", Info24, qos=LATCHED), qos=LATCHED_READER)
         end = time.monotonic() + 15
         seen = None
         while seen is None and time.monotonic() < end:

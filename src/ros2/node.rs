@@ -309,7 +309,18 @@ pub fn spawn_node(
 
     // The node's announcement (ros_discovery_info) and the peers'.
     let announce_w = dds.raw_writer(discovery::TOPIC, discovery::TYPE_NAME, qos::latched())?;
-    let announce_r = dds.raw_reader(discovery::TOPIC, discovery::TYPE_NAME, qos::latched())?;
+    // Keyless: every peer's announcement is one instance; keep more than the last one.
+    let announce_r = dds.raw_reader(
+        discovery::TOPIC,
+        discovery::TYPE_NAME,
+        rustdds::QosPolicyBuilder::new()
+            .reliability(rustdds::policy::Reliability::Reliable {
+                max_blocking_time: rustdds::Duration::from_millis(100),
+            })
+            .durability(rustdds::policy::Durability::TransientLocal)
+            .history(rustdds::policy::History::KeepLast { depth: 32 })
+            .build(),
+    )?;
     let me = ParticipantEntities {
         gid: dds.guid().to_bytes(),
         nodes: vec![NodeEntities {
@@ -761,64 +772,74 @@ impl CommandSide {
         wake: futures::channel::oneshot::Receiver<()>,
     ) {
         let mut wake = wake.fuse();
-        let listener = dds.participant().status_listener();
-        let status_s = listener.as_async_status_stream().fuse();
-        let vel_s = cmd_vel.as_async_stream();
-        let legs_s = legs.as_async_stream();
-        let stop_s = services[0].requests.as_async_stream();
-        let rearm_s = services[1].requests.as_async_stream();
-        let ann_s = announcements.as_async_stream();
-        futures::pin_mut!(status_s, vel_s, legs_s, stop_s, rearm_s, ann_s);
-        loop {
-            futures::select! {
-                _ = wake => break,
-                ev = status_s.next() => match ev {
-                    Some(ev) => self.status(ev),
-                    None => break,
-                },
-                v = vel_s.next() => match v {
-                    Some(Ok(dcc)) => self.command(false, &dcc.into_value()),
-                    Some(Err(e)) => {
-                        let ep = self.vel_topic.clone();
-                        self.undecodable(&ep, "velocity command", &e.to_string());
-                    }
-                    None => break,
-                },
-                l = legs_s.next() => match l {
-                    Some(Ok(dcc)) => self.command(true, &dcc.into_value()),
-                    Some(Err(e)) => {
-                        let ep = self.leg_topic.clone();
-                        self.undecodable(&ep, "leg command", &e.to_string());
-                    }
-                    None => break,
-                },
-                r = stop_s.next() => match r {
-                    Some(Ok(dcc)) => self.request(&services[0], CommandKind::Stop, dcc).await,
-                    Some(Err(e)) => {
-                        let ep = services[0].name.clone();
-                        self.undecodable(&ep, "std_srvs/srv/Trigger request", &e.to_string());
-                    }
-                    None => break,
-                },
-                r = rearm_s.next() => match r {
-                    Some(Ok(dcc)) => self.request(&services[1], CommandKind::Rearm, dcc).await,
-                    Some(Err(e)) => {
-                        let ep = services[1].name.clone();
-                        self.undecodable(&ep, "std_srvs/srv/Trigger request", &e.to_string());
-                    }
-                    None => break,
-                },
-                a = ann_s.next() => match a {
-                    Some(Ok(dcc)) => {
-                        let meta = dds::sample_meta(&dcc);
-                        self.peer_announcement(&meta, &dcc.into_value());
-                    }
-                    // Not ours to count: a peer's discovery data, not a message to us.
-                    Some(Err(e)) => tracing::debug!("ros2: ros_discovery_info sample: {e}"),
-                    None => break,
-                },
+        {
+            let listener = dds.participant().status_listener();
+            let status_s = listener.as_async_status_stream().fuse();
+            let vel_s = cmd_vel.as_async_stream();
+            let legs_s = legs.as_async_stream();
+            let stop_s = services[0].requests.as_async_stream();
+            let rearm_s = services[1].requests.as_async_stream();
+            let ann_s = announcements.as_async_stream();
+            futures::pin_mut!(status_s, vel_s, legs_s, stop_s, rearm_s, ann_s);
+            loop {
+                futures::select! {
+                    _ = wake => break,
+                    ev = status_s.next() => match ev {
+                        Some(ev) => self.status(ev),
+                        None => break,
+                    },
+                    v = vel_s.next() => match v {
+                        Some(Ok(dcc)) => self.command(false, &dcc.into_value()),
+                        Some(Err(e)) => {
+                            let ep = self.vel_topic.clone();
+                            self.undecodable(&ep, "velocity command", &e.to_string());
+                        }
+                        None => break,
+                    },
+                    l = legs_s.next() => match l {
+                        Some(Ok(dcc)) => self.command(true, &dcc.into_value()),
+                        Some(Err(e)) => {
+                            let ep = self.leg_topic.clone();
+                            self.undecodable(&ep, "leg command", &e.to_string());
+                        }
+                        None => break,
+                    },
+                    r = stop_s.next() => match r {
+                        Some(Ok(dcc)) => self.request(&services[0], CommandKind::Stop, dcc).await,
+                        Some(Err(e)) => {
+                            let ep = services[0].name.clone();
+                            self.undecodable(&ep, "std_srvs/srv/Trigger request", &e.to_string());
+                        }
+                        None => break,
+                    },
+                    r = rearm_s.next() => match r {
+                        Some(Ok(dcc)) => self.request(&services[1], CommandKind::Rearm, dcc).await,
+                        Some(Err(e)) => {
+                            let ep = services[1].name.clone();
+                            self.undecodable(&ep, "std_srvs/srv/Trigger request", &e.to_string());
+                        }
+                        None => break,
+                    },
+                    a = ann_s.next() => match a {
+                        Some(Ok(dcc)) => {
+                            let meta = dds::sample_meta(&dcc);
+                            self.peer_announcement(&meta, &dcc.into_value());
+                        }
+                        // Not ours to count: a peer's discovery data, not a message to us.
+                        Some(Err(e)) => tracing::debug!("ros2: ros_discovery_info sample: {e}"),
+                        None => break,
+                    },
+                }
             }
         }
+        // Endpoints before their participant: rustdds reports an error for an endpoint
+        // removed after its participant's event loop stopped.
+        drop(self);
+        drop(services);
+        drop(cmd_vel);
+        drop(legs);
+        drop(announcements);
+        drop(dds);
     }
 }
 
