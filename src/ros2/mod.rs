@@ -60,7 +60,7 @@ pub enum Ros2Error {
         what: &'static str,
         /// Its name.
         name: String,
-        /// What ros2-client reported.
+        /// What rustdds reported.
         message: String,
     },
     /// A node thread could not be started.
