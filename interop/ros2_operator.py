@@ -55,10 +55,13 @@ def main():
         time.sleep(0.005)
     out["discovery_s"] = time.monotonic() - t0
     time.sleep(0.3)
-    # Odometry latency across the link: the stamp is the robot's wall clock, the same kernel
-    # clock as ours (two namespaces of one machine), so receipt − stamp is the one-way delay
-    # of DDS over the veth link (plus the node's decimation thread hand-over).
+    # Odometry across the link: the arrival intervals (50 Hz: 20 ms), and receipt − stamp.
+    # The stamp is the robot's cycle time on its wall clock, the same kernel clock as ours
+    # (two namespaces of one machine), so the difference is the delay through the node and
+    # the link plus any offset of the stamps themselves; samples of the first second are left
+    # out (a newly matched reader also receives the writer's last few samples).
     lat = []
+    arrivals = []
     moving_at = None
     t_cmd = time.monotonic()
     end = t_cmd + a.seconds
@@ -73,12 +76,16 @@ def main():
             if not isinstance(s, rt.Odometry):
                 continue
             now = time.time()
-            lat.append(now - (s.header.stamp.sec + s.header.stamp.nanosec * 1e-9))
+            if time.monotonic() - t_cmd > 1.0:
+                lat.append(now - (s.header.stamp.sec + s.header.stamp.nanosec * 1e-9))
+                arrivals.append(time.monotonic())
             if moving_at is None and s.twist.twist.linear.x > REST:
                 moving_at = time.monotonic() - t_cmd
         time.sleep(0.002)
     out["cmd_vel_sent"] = sent
     out["odom_received"] = len(lat)
+    gaps = [b - a for a, b in zip(arrivals, arrivals[1:])]
+    out["odom_interval_ms"] = {"p50": pct(gaps, 0.5) * 1e3, "p99": pct(gaps, 0.99) * 1e3, "max": max(gaps) * 1e3} if gaps else None
     out["first_motion_s"] = moving_at
     out["odom_latency_ms"] = {"p50": pct(lat, 0.5) * 1e3, "p99": pct(lat, 0.99) * 1e3, "max": max(lat) * 1e3} if lat else None
     # ~/stop across the link.

@@ -244,19 +244,18 @@ def test_two_hosts_over_a_veth_link(tmp_path, plat, two_hosts):
                             "--domain", str(domain), "--seconds", "4"], capture_output=True, text=True, timeout=90)
         assert o.returncode == 0, o.stdout + o.stderr[-3000:]
         r = json.loads(o.stdout.strip().splitlines()[-1])
-        lat = r["odom_latency_ms"]
-        print(f"\ntwo hosts over veth: discovery {r['discovery_s']:.3f} s; cmd_vel → odom moving {r['first_motion_s']:.3f} s "
-              f"(alignment + ramp); odom stamp → receipt p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms "
+        lat, gap = r["odom_latency_ms"], r["odom_interval_ms"]
+        print(f"\ntwo hosts over veth: discovery {r['discovery_s']:.3f} s; first cmd_vel → first odom showing motion "
+              f"{r['first_motion_s'] * 1e3:.1f} ms; odom intervals p50 {gap['p50']:.1f} ms, p99 {gap['p99']:.1f} ms, "
+              f"max {gap['max']:.1f} ms; odom stamp → receipt p50 {lat['p50']:.1f} ms, p99 {lat['p99']:.1f} ms "
               f"over {r['odom_received']} messages; ~/stop answered in {r['stop_reply_ms']:.1f} ms")
         (REPO / "target").mkdir(exist_ok=True)
         (REPO / "target" / "ros2-two-hosts.json").write_text(json.dumps(r, indent=1))
         assert r["first_motion_s"] is not None, r
         assert r["stop_success"] and r["at_rest_after_stop"], r
-        # 4 s at 50 Hz: a few samples may fall before the first match.
-        assert r["odom_received"] >= 150, r
+        # 3 s (after the first second) at 50 Hz.
+        assert r["odom_received"] >= 140, r
         assert r["final_x"] > 0.1, r
-        # The robot saw the operator through the link, not through loopback: its announcements
-        # went out on the veth (the operator namespace has no other way in).
     finally:
         if p.poll() is None:
             p.send_signal(signal.SIGTERM)
