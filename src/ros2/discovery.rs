@@ -41,7 +41,7 @@ pub enum GidLayout {
 
 impl GidLayout {
     /// Bytes of one `Gid`.
-    pub fn len(self) -> usize {
+    pub fn bytes(self) -> usize {
         match self {
             Self::Gid24 => 24,
             Self::Gid16 => 16,
@@ -59,7 +59,7 @@ impl GidLayout {
 
 impl fmt::Display for GidLayout {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}-byte gid ({})", self.len(), self.releases())
+        write!(f, "{}-byte gid ({})", self.bytes(), self.releases())
     }
 }
 
@@ -155,7 +155,7 @@ impl W {
     }
     fn gid(&mut self, g: &[u8; 16], layout: GidLayout) {
         self.0.extend_from_slice(g);
-        self.0.resize(self.0.len() + layout.len() - 16, 0);
+        self.0.resize(self.0.len() + layout.bytes() - 16, 0);
     }
     fn string(&mut self, s: &str) {
         self.u32(s.len() as u32 + 1);
@@ -217,7 +217,7 @@ impl R<'_> {
         })
     }
     fn gid(&mut self, layout: GidLayout, what: &str) -> Result<[u8; 16], String> {
-        let s = self.take(layout.len(), what)?;
+        let s = self.take(layout.bytes(), what)?;
         let mut g = [0u8; 16];
         g.copy_from_slice(&s[..16]);
         Ok(g)
@@ -267,7 +267,7 @@ pub fn decode(
         let name = r.string("node_name")?;
         let mut lists = [Vec::new(), Vec::new()];
         for (list, what) in lists.iter_mut().zip(["reader_gid_seq", "writer_gid_seq"]) {
-            let k = r.count(layout.len(), what)?;
+            let k = r.count(layout.bytes(), what)?;
             for _ in 0..k {
                 list.push(r.gid(layout, what)?);
             }
@@ -394,7 +394,7 @@ mod tests {
         };
         for layout in [GidLayout::Gid24, GidLayout::Gid16] {
             let b = encode(&empty, layout);
-            assert_eq!(b.len(), layout.len() + 4);
+            assert_eq!(b.len(), layout.bytes() + 4);
             assert_eq!(detect_layout(&b, false).unwrap(), (layout, empty.clone()));
         }
     }

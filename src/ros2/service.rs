@@ -166,12 +166,15 @@ pub fn decode_request<T: RosMsg>(
     }
 }
 
+/// A sample identity: writer GUID and sequence number.
+pub type SampleId = ([u8; 16], i64);
+
 /// The reply's CDR payload (little endian, without the encapsulation header) and the
 /// `related_sample_identity` to send with it, for `reply_to`.
 pub fn encode_reply<T: RosMsg>(
     reply: &T,
     reply_to: &ReplyTo,
-) -> Result<(Vec<u8>, Option<([u8; 16], i64)>), msg::MsgError> {
+) -> Result<(Vec<u8>, Option<SampleId>), msg::MsgError> {
     let body = msg::to_cdr(reply)?;
     let body = &body[msg::CDR_LE_HEADER.len()..];
     Ok(match reply_to {
