@@ -331,3 +331,23 @@ def test_robot_description_parsed_by_urdf_parser_py_has_the_joint_states_names()
         assert chain == [f"wheel_{i}_leg_joint", f"wheel_{i}_steer_joint", f"wheel_{i}_drive_joint"], chain
         kinds = [robot.joint_map[j].type for j in chain]
         assert kinds == ["prismatic", "continuous", "continuous"], kinds
+
+
+def test_incompatible_qos_is_logged_with_the_policy():
+    """A subscriber that cannot match one of the node's endpoints (a transient-local reader of
+    the volatile odom) is reported: counted, and logged once with the endpoint and the policy."""
+    domain = 29
+    st = SelfTest("--ros2-domain-id", str(domain))
+    try:
+        dp = DomainParticipant(domain)
+        r = DataReader(dp, Topic(dp, "rt/odom", rt.Odometry, qos=ROS_QOS), qos=LATCHED_READER)
+        end = time.monotonic() + 10
+        while time.monotonic() < end and not any("incompatible QoS" in line for line in st.stderr_lines):
+            time.sleep(0.05)
+        assert not r.get_matched_publications(), "a transient-local reader does not match a volatile writer"
+    finally:
+        done = st.stop()
+    assert done["stats"]["qos_incompatible"] >= 1, done
+    lines = [line for line in st.stderr_lines if "incompatible QoS" in line]
+    assert len(lines) == 1, lines
+    assert "publisher /odom" in lines[0] and "policy Durability" in lines[0] and "TransientLocal" in lines[0], lines[0]
