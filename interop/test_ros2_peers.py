@@ -351,3 +351,26 @@ def test_incompatible_qos_is_logged_with_the_policy():
     lines = [line for line in st.stderr_lines if "incompatible QoS" in line]
     assert len(lines) == 1, lines
     assert "publisher /odom" in lines[0] and "policy Durability" in lines[0] and "TransientLocal" in lines[0], lines[0]
+
+
+def test_dds_stack_logs_reach_the_log_under_rust_log():
+    """rustdds' log records come out in rollbase's log, filtered by RUST_LOG: in this
+    namespace (loopback without multicast) rustdds warns that it joined no multicast group;
+    the default filter keeps rustdds at errors, RUST_LOG=info,rustdds=warn shows the warning."""
+    from conftest import binary
+
+    def run(rust_log):
+        env = {k: v for k, v in os.environ.items() if k not in ("RUST_LOG", "ROS_DISTRO")}
+        if rust_log is not None:
+            env["RUST_LOG"] = rust_log
+        p = subprocess.run([str(binary("rollbase")), "ros2-selftest", "--ros2-domain-id", "43", "--duration", "1.5"],
+                           capture_output=True, text=True, timeout=60, env=env)
+        assert p.returncode == 0, p.stderr[-2000:]
+        return p.stderr
+
+    quiet, loud = run(None), run("info,rustdds=warn")
+    marker = "No multicast joins succeeded"
+    assert marker not in quiet, quiet[-2000:]
+    assert marker in loud and " WARN " in next(line for line in loud.splitlines() if marker in line), loud[-2000:]
+    # The node's own lines are there either way.
+    assert "ROS_DISTRO is not set" in quiet and "ROS_DISTRO is not set" in loud
