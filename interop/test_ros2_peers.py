@@ -261,7 +261,8 @@ def test_node_announced_in_the_peers_discovery_layout(layout):
         assert writers & endpoints(dp, BuiltinTopicDcpsPublication, "rt/odom"), "the odom writer is the node's"
         assert writers & endpoints(dp, BuiltinTopicDcpsPublication, "rr/rollbase/stopReply")
         assert readers & endpoints(dp, BuiltinTopicDcpsSubscription, "rq/rollbase/stopRequest")
-        assert len(readers) == 4 and len(writers) >= 8, (len(readers), len(writers))
+        # cmd_vel, leg_commands and 8 service request readers; 6 topics and 8 reply writers.
+        assert (len(readers), len(writers)) == (10, 14), (len(readers), len(writers))
     finally:
         done = st.stop()
     assert done["stats"]["discovery_layout"] == layout, done
@@ -374,3 +375,38 @@ def test_dds_stack_logs_reach_the_log_under_rust_log():
     assert marker in loud and " WARN " in next(line for line in loud.splitlines() if marker in line), loud[-2000:]
     # The node's own lines are there either way.
     assert "ROS_DISTRO is not set" in quiet and "ROS_DISTRO is not set" in loud
+
+
+def test_parameter_services_answer_like_any_node():
+    """`ros2 param list` / `ros2 param set` reach rollbase's parameter services (in the
+    caller's mapping): no parameters listed, a set refused with the reason."""
+    domain = 44
+    st = SelfTest("--ros2-domain-id", str(domain))
+    try:
+        dp = DomainParticipant(domain)
+
+        def call(srv, req_t, rep_t, req):
+            w = DataWriter(dp, Topic(dp, f"rq/rollbase/{srv}Request", req_t, qos=ROS_QOS), qos=ROS_QOS)
+            r = DataReader(dp, Topic(dp, f"rr/rollbase/{srv}Reply", rep_t, qos=ROS_QOS), qos=ROS_QOS)
+            matched(w, r)
+            time.sleep(0.3)
+            w.write(req)
+            end = time.monotonic() + 10
+            while time.monotonic() < end:
+                for s in r.take(N=10):
+                    if isinstance(s, rep_t) and (s.client_guid, s.sequence_number) == (req.client_guid, req.sequence_number):
+                        return s
+                time.sleep(0.01)
+            raise AssertionError(f"no reply from ~/{srv}")
+
+        lst = call("list_parameters", rt.ListParametersRequest, rt.ListParametersResponse,
+                   rt.ListParametersRequest(client_guid=3, sequence_number=1, prefixes=[], depth=0))
+        assert list(lst.names) == [] and list(lst.prefixes) == [], lst
+        p = rt.Parameter(name="wheel_radius", value=rt.ParameterValue(type=3, double_value=0.1))
+        rep = call("set_parameters", rt.SetParametersRequest, rt.SetParametersResponse,
+                   rt.SetParametersRequest(client_guid=3, sequence_number=2, parameters=[p, p]))
+        assert len(rep.results) == 2 and not any(r.successful for r in rep.results), rep
+        assert "platform file" in rep.results[0].reason, rep.results[0].reason
+    finally:
+        done = st.stop()
+    assert done["stats"]["services_cyclone"] == 2 and done["stats"]["undecodable"] == {}, done

@@ -9,6 +9,7 @@
 //! - [`service`]: service requests in either rmw's request/reply mapping (pure);
 //! - [`discovery`]: `ros_discovery_info` in Humble's and Jazzy's layouts (pure);
 //! - [`urdf`]: the robot model from the platform file (pure);
+//! - [`params`]: the parameter services every ROS 2 node has (none to set; pure answers);
 //! - [`node`]: the node on its own threads, [`spawn_node`].
 //!
 //! See `docs/ros2.md` for topics, frames, services, options, QoS and Nav2 settings.
@@ -18,6 +19,7 @@ pub mod dds;
 pub mod discovery;
 pub mod msg;
 pub mod node;
+pub mod params;
 pub mod service;
 pub mod urdf;
 

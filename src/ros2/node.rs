@@ -30,6 +30,7 @@ use super::msg::{
     self, DiagnosticArray, Float64MultiArray, JointState, Odometry, RosMsg, StringMsg, TFMessage,
     TriggerRequest, TriggerResponse, Twist, TwistStamped,
 };
+use super::params;
 use super::service::{self, RequestMeta};
 use super::{Ros2Error, Ros2Options, ServiceMapping};
 use futures::{FutureExt, StreamExt};
@@ -174,28 +175,65 @@ impl DropLog {
 /// The state the services report in their answers.
 type SharedState = Arc<Mutex<Option<String>>>;
 
+/// What a service does.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ServiceKind {
+    /// `~/stop`.
+    Stop,
+    /// `~/rearm`.
+    Rearm,
+    /// A parameter service: index into [`params::SERVICES`].
+    Param(usize),
+}
+
 /// A service's two DDS endpoints.
-struct TriggerService {
+struct ServiceEndpoints {
     name: String,
+    kind: ServiceKind,
     requests: RawReader,
     replies: RawWriter,
 }
 
-fn trigger_service(dds: &Dds, absolute: &str) -> Result<TriggerService, Ros2Error> {
+fn service(
+    dds: &Dds,
+    absolute: &str,
+    kind: ServiceKind,
+    req: &msg::MsgDef,
+    rep: &msg::MsgDef,
+) -> Result<ServiceEndpoints, Ros2Error> {
     let (rq, rr) = dds::service_dds_names(absolute);
-    Ok(TriggerService {
+    Ok(ServiceEndpoints {
         name: absolute.to_string(),
-        requests: dds.raw_reader(
-            &rq,
-            &msg::TRIGGER_REQUEST.dds_type_name(),
-            qos::ros_default(),
-        )?,
-        replies: dds.raw_writer(
-            &rr,
-            &msg::TRIGGER_RESPONSE.dds_type_name(),
-            qos::ros_default(),
-        )?,
+        kind,
+        requests: dds.raw_reader(&rq, &req.dds_type_name(), qos::ros_default())?,
+        replies: dds.raw_writer(&rr, &rep.dds_type_name(), qos::ros_default())?,
     })
+}
+
+/// A reply ready to write: payload, related identity, mapping.
+type Reply = (Vec<u8>, Option<service::SampleId>, ServiceMapping);
+
+/// Decodes a request of `Req` in the caller's mapping, answers it with `f`, encodes the reply.
+fn serve<Req: RosMsg, Resp: RosMsg>(
+    s: &dds::RawSample,
+    meta: &dds::SampleMeta,
+    mapping: ServiceMapping,
+    f: impl FnOnce(&Req) -> Resp,
+) -> Result<Reply, String> {
+    let req = service::decode_request::<Req>(
+        &s.payload,
+        s.big_endian,
+        &RequestMeta {
+            writer_guid: meta.writer_guid,
+            sequence_number: meta.sequence_number,
+            related: meta.related,
+        },
+        mapping,
+    )?;
+    let resp = f(&req.request);
+    let (bytes, related) =
+        service::encode_reply(&resp, &req.reply_to).map_err(|e| e.to_string())?;
+    Ok((bytes, related, req.reply_to.mapping()))
 }
 
 /// The node's endpoints by GUID, for messages about them and for its announcement.
@@ -300,9 +338,16 @@ pub fn spawn_node(
     )?;
     eps.reader(legs.guid(), format!("subscription {leg_topic}"));
     let fqn = opts.node_fqn();
-    let stop_srv = trigger_service(&dds, &format!("{fqn}/stop"))?;
-    let rearm_srv = trigger_service(&dds, &format!("{fqn}/rearm"))?;
-    for s in [&stop_srv, &rearm_srv] {
+    let (tq, tr) = (&msg::TRIGGER_REQUEST, &msg::TRIGGER_RESPONSE);
+    let mut services = vec![
+        service(&dds, &format!("{fqn}/stop"), ServiceKind::Stop, tq, tr)?,
+        service(&dds, &format!("{fqn}/rearm"), ServiceKind::Rearm, tq, tr)?,
+    ];
+    for (i, (name, rq, rp)) in params::SERVICES.iter().enumerate() {
+        let abs = format!("{fqn}/{name}");
+        services.push(service(&dds, &abs, ServiceKind::Param(i), rq, rp)?);
+    }
+    for s in &services {
         eps.reader(s.requests.guid(), format!("service {} (requests)", s.name));
         eps.writer(s.replies.guid(), format!("service {} (replies)", s.name));
     }
@@ -371,14 +416,9 @@ pub fn spawn_node(
     let cmd_thread = std::thread::Builder::new()
         .name("rollbase-ros2-cmd".into())
         .spawn(move || {
-            futures::executor::block_on(cmd_side.run(
-                dds,
-                cmd_vel,
-                legs,
-                [stop_srv, rearm_srv],
-                announce_r,
-                wake_rx,
-            ))
+            futures::executor::block_on(
+                cmd_side.run(dds, cmd_vel, legs, services, announce_r, wake_rx),
+            )
         })
         .map_err(|source| Ros2Error::Thread {
             name: "rollbase-ros2-cmd",
@@ -629,43 +669,52 @@ impl CommandSide {
         }
     }
 
-    /// A service request: decoded in the caller's mapping, passed on, answered likewise.
+    /// A service request: decoded in the caller's mapping, carried out, answered likewise.
     async fn request(
         &mut self,
-        srv: &TriggerService,
-        kind: CommandKind,
+        srv: &ServiceEndpoints,
         dcc: rustdds::no_key::DeserializedCacheChange<dds::RawSample>,
     ) {
         let meta = dds::sample_meta(&dcc);
         let s = dcc.into_value();
-        let req = service::decode_request::<TriggerRequest>(
-            &s.payload,
-            s.big_endian,
-            &RequestMeta {
-                writer_guid: meta.writer_guid,
-                sequence_number: meta.sequence_number,
-                related: meta.related,
-            },
-            self.mapping,
-        );
-        let req = match req {
+        let m = self.mapping;
+        let reply = match srv.kind {
+            ServiceKind::Stop | ServiceKind::Rearm => {
+                let (kind, which) = if srv.kind == ServiceKind::Stop {
+                    (CommandKind::Stop, "stop")
+                } else {
+                    (CommandKind::Rearm, "rearm")
+                };
+                // Decoded before the command is passed on: an undecodable request does nothing.
+                match service::decode_request::<TriggerRequest>(
+                    &s.payload,
+                    s.big_endian,
+                    &RequestMeta {
+                        writer_guid: meta.writer_guid,
+                        sequence_number: meta.sequence_number,
+                        related: meta.related,
+                    },
+                    m,
+                ) {
+                    Err(e) => Err(e),
+                    Ok(_) => {
+                        let queued = self.send(kind);
+                        let resp = self.answer(which, queued);
+                        serve::<TriggerRequest, TriggerResponse>(&s, &meta, m, |_| resp)
+                    }
+                }
+            }
+            ServiceKind::Param(0) => serve(&s, &meta, m, params::answer_list),
+            ServiceKind::Param(1) => serve(&s, &meta, m, params::answer_get),
+            ServiceKind::Param(2) => serve(&s, &meta, m, params::answer_types),
+            ServiceKind::Param(3) => serve(&s, &meta, m, params::answer_describe),
+            ServiceKind::Param(4) => serve(&s, &meta, m, params::answer_set),
+            ServiceKind::Param(_) => serve(&s, &meta, m, params::answer_set_atomically),
+        };
+        let (bytes, related, mapping) = match reply {
             Ok(r) => r,
             Err(e) => {
-                self.undecodable(&srv.name, "std_srvs/srv/Trigger request", &e);
-                return;
-            }
-        };
-        let which = if matches!(kind, CommandKind::Stop) {
-            "stop"
-        } else {
-            "rearm"
-        };
-        let queued = self.send(kind);
-        let resp = self.answer(which, queued);
-        let (bytes, related) = match service::encode_reply(&resp, &req.reply_to) {
-            Ok(x) => x,
-            Err(e) => {
-                tracing::warn!("ros2: {}: reply not encoded: {e}", srv.name);
+                self.undecodable(&srv.name, "service request", &e);
                 return;
             }
         };
@@ -683,15 +732,11 @@ impl CommandSide {
         {
             Ok(_) => {
                 NodeStats::add(&self.stats.services_answered);
-                NodeStats::add(match req.reply_to.mapping() {
+                NodeStats::add(match mapping {
                     ServiceMapping::Enhanced => &self.stats.services_enhanced,
                     _ => &self.stats.services_cyclone,
                 });
-                tracing::debug!(
-                    "ros2: {} answered in the {:?} mapping",
-                    srv.name,
-                    req.reply_to.mapping()
-                );
+                tracing::debug!("ros2: {} answered in the {mapping:?} mapping", srv.name);
             }
             Err(e) => tracing::warn!("ros2: {}: the reply could not be sent: {e:?}", srv.name),
         }
@@ -767,7 +812,7 @@ impl CommandSide {
         dds: Dds,
         cmd_vel: RawReader,
         legs: RawReader,
-        services: [TriggerService; 2],
+        services: Vec<ServiceEndpoints>,
         announcements: RawReader,
         wake: futures::channel::oneshot::Receiver<()>,
     ) {
@@ -777,10 +822,16 @@ impl CommandSide {
             let status_s = listener.as_async_status_stream().fuse();
             let vel_s = cmd_vel.as_async_stream();
             let legs_s = legs.as_async_stream();
-            let stop_s = services[0].requests.as_async_stream();
-            let rearm_s = services[1].requests.as_async_stream();
+            // Every service's requests, tagged with the service's index.
+            let mut requests_s =
+                futures::stream::select_all(services.iter().enumerate().map(|(i, srv)| {
+                    srv.requests
+                        .as_async_stream()
+                        .map(move |r| (i, r))
+                        .boxed_local()
+                }));
             let ann_s = announcements.as_async_stream();
-            futures::pin_mut!(status_s, vel_s, legs_s, stop_s, rearm_s, ann_s);
+            futures::pin_mut!(status_s, vel_s, legs_s, ann_s);
             loop {
                 futures::select! {
                     _ = wake => break,
@@ -804,19 +855,11 @@ impl CommandSide {
                         }
                         None => break,
                     },
-                    r = stop_s.next() => match r {
-                        Some(Ok(dcc)) => self.request(&services[0], CommandKind::Stop, dcc).await,
-                        Some(Err(e)) => {
-                            let ep = services[0].name.clone();
-                            self.undecodable(&ep, "std_srvs/srv/Trigger request", &e.to_string());
-                        }
-                        None => break,
-                    },
-                    r = rearm_s.next() => match r {
-                        Some(Ok(dcc)) => self.request(&services[1], CommandKind::Rearm, dcc).await,
-                        Some(Err(e)) => {
-                            let ep = services[1].name.clone();
-                            self.undecodable(&ep, "std_srvs/srv/Trigger request", &e.to_string());
+                    r = requests_s.next() => match r {
+                        Some((i, Ok(dcc))) => self.request(&services[i], dcc).await,
+                        Some((i, Err(e))) => {
+                            let ep = services[i].name.clone();
+                            self.undecodable(&ep, "service request", &e.to_string());
                         }
                         None => break,
                     },
