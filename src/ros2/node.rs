@@ -835,9 +835,9 @@ impl CommandSide {
             loop {
                 futures::select! {
                     _ = wake => break,
-                    ev = status_s.next() => match ev {
-                        Some(ev) => self.status(ev),
-                        None => break,
+                    ev = status_s.next() => if let Some(ev) = ev {
+                        // Status events only inform; if they ever end, commands go on.
+                        self.status(ev);
                     },
                     v = vel_s.next() => match v {
                         Some(Ok(dcc)) => self.command(false, &dcc.into_value()),
