@@ -410,3 +410,47 @@ def test_parameter_services_answer_like_any_node():
     finally:
         done = st.stop()
     assert done["stats"]["services_cyclone"] == 2 and done["stats"]["undecodable"] == {}, done
+
+
+def test_undecodable_samples_are_counted_per_endpoint_and_logged_once():
+    """A publisher whose Twist has the right type name but the wrong layout, and a caller whose
+    Trigger request fits neither mapping: nothing reaches the command port, each endpoint
+    counts its samples, and each is logged once with the reason."""
+    from cyclonedds.idl.types import float64 as f64, uint32, uint64
+
+    @dataclass
+    class ShortTwist(IdlStruct, typename="geometry_msgs::msg::dds_::Twist_"):
+        x: f64 = 0.0
+
+    @dataclass
+    class OddTrigger(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Request_"):
+        a: uint64 = 0
+        b: uint32 = 0
+
+    domain = 45
+    st = SelfTest("--ros2-domain-id", str(domain))
+    try:
+        dp = DomainParticipant(domain)
+        w = DataWriter(dp, Topic(dp, "rt/cmd_vel", ShortTwist, qos=ROS_QOS), qos=ROS_QOS)
+        q = DataWriter(dp, Topic(dp, "rq/rollbase/stopRequest", OddTrigger, qos=ROS_QOS), qos=ROS_QOS)
+        matched(w, q)
+        time.sleep(0.3)
+        for k in range(3):
+            w.write(ShortTwist(x=1.0 + k))
+        q.write(OddTrigger(a=1, b=2))
+        q.write(OddTrigger(a=3, b=4))
+        end = time.monotonic() + 10
+        while time.monotonic() < end and sum("did not decode" in line for line in st.stderr_lines) < 2:
+            time.sleep(0.05)
+        time.sleep(0.3)
+    finally:
+        done = st.stop()
+    assert done["stats"]["undecodable"] == {"/cmd_vel": 3, "/rollbase/stop": 2}, done
+    assert done["stats"]["commands_sent"] == 0 and done["stats"]["services_answered"] == 0, done
+    assert not [c for c in st.commands if c["cmd"] in ("motion", "stop")], st.commands
+    logged = [line for line in st.stderr_lines if "did not decode" in line]
+    assert len(logged) == 2, logged
+    vel = next(line for line in logged if "/cmd_vel" in line)
+    srv = next(line for line in logged if "/rollbase/stop" in line)
+    assert "geometry_msgs/msg/Twist" in vel, vel
+    assert "fit neither mapping" in srv and "12 bytes" in srv, srv
