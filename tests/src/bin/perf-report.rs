@@ -1096,15 +1096,19 @@ fn report(o: &Options) -> Result<(), String> {
     if let Some(dir) = o.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
     }
-    // The ROS 2 section is written by `ros2-perf` (it needs a network namespace): keep it.
+    // The ROS 2 sections are written by `ros2-perf` and from interop/test_ros2_fleet.py (they
+    // need network namespaces): keep them.
     if let Ok(old) = std::fs::read_to_string(&o.out) {
-        const BEGIN: &str = "<!-- ros2-perf:begin -->";
-        const END: &str = "<!-- ros2-perf:end -->";
-        if let (Some(b), Some(e)) = (old.find(BEGIN), old.find(END)) {
-            if e > b {
-                md.push('\n');
-                md.push_str(&old[b..e + END.len()]);
-                md.push('\n');
+        for (begin, end) in [
+            ("<!-- ros2-perf:begin -->", "<!-- ros2-perf:end -->"),
+            ("<!-- ros2-fleet:begin -->", "<!-- ros2-fleet:end -->"),
+        ] {
+            if let (Some(b), Some(e)) = (old.find(begin), old.find(end)) {
+                if e > b {
+                    md.push('\n');
+                    md.push_str(&old[b..e + end.len()]);
+                    md.push('\n');
+                }
             }
         }
     }
