@@ -86,6 +86,59 @@
 //! the state is exactly zero and the ICR is outside every field, [`Avoidance::step`] returns
 //! the nominal sample itself (bit-identical).
 //!
+//! # Pre-planned trajectories: the avoidance before the run, the time scaling after it
+//!
+//! Run online on a time-scaled trajectory (nominal → scaling → [`Avoidance::step`] →
+//! controller), the filter adds accelerations and, near a wheel, steering rates that no
+//! timing budgeted: the scaling planned the *nominal* path within the limits, and whatever
+//! is added after it is not. Measured on issue 23's lockstep runs (both profiles): the
+//! seed-001 experiment tracked its avoided reference to 14.8 mm, pivots about a wheel to
+//! 42–58 mm (two of four faulted), ICR sweeps to 3–22 mm, against a 5 mm bound. So with a
+//! pre-planned trajectory the order is reversed ([`AvoidedTrajectory`], used by the runtime
+//! whenever the avoidance is on):
+//!
+//! ```text
+//!   z*(t) ─► Avoidance::step at the cycle period, offline ─► z*(t) + δ(t) ─► time scaling ─► controller
+//! ```
+//!
+//! * **The ICR is a property of the path, not of its timing.** Along a path z(τ) run on a
+//!   clock τ(t), every velocity is z' ṡ, so v_b and θ̇ scale by the same ṡ and the ICR
+//!   z = S v_b/θ̇ (eq. 1) and every distance d_i = |u_i|/|θ̇| are unchanged. The fields keep
+//!   the ICR of the avoided path where they put it at any timing: the time scaling, which
+//!   only changes ṡ, keeps what the avoidance did, and the avoidance, computed first, needs
+//!   no knowledge of the timing that follows.
+//! * **The avoided path is the filter's, unchanged.** δ_k is the deviation the filter holds
+//!   at cycle k when fed the nominal at t_k = k Δt — the same dynamics (push, leg law,
+//!   return loop, clamps) and the same numbers as online, from the start of the trajectory
+//!   to its end and on, with the trajectory at its goal, until the return loop has brought
+//!   δ back to exactly zero (at most [`MAX_RETURN_S`]; a deviation that never returns is
+//!   refused before the run, [`AvoidanceError::Unsettled`]).
+//! * **Continuous to the derivatives the DFL needs.** The filter integrates with
+//!   semi-implicit Euler (δ̇_{k+1} = δ̇_k + δ̈_k Δt, δ_{k+1} = δ_k + δ̇_{k+1} Δt), which is the
+//!   Störmer–Verlet recursion δ_{k+1} − 2δ_k + δ_{k−1} = δ̈_k Δt². The uniform cubic B-spline
+//!   with control points δ_k has, at knot k, the value (δ_{k−1} + 4δ_k + δ_{k+1})/6 =
+//!   δ_k + δ̈_k Δt²/6, the rate (δ_{k+1} − δ_{k−1})/(2Δt) = δ̇_k + δ̈_k Δt/2 and the
+//!   acceleration (δ_{k+1} − 2δ_k + δ_{k−1})/Δt² = δ̈_k exactly: it is the filter's output
+//!   to 1.6 µm per m/s² and 2 mm/s per m/s² (at Δt = 4 ms), it is C² (its acceleration is
+//!   piecewise linear, the filter's δ̈_k at the knots) and its jerk is piecewise constant,
+//!   (δ̈_{k+1} − δ̈_k)/Δt. Added to the nominal (C² with bounded jerk), the avoided path is C²
+//!   with bounded jerk: a path [`crate::timescale::ScaledTrajectory`] can time, and whose
+//!   derivatives the time scaling and the DFL read exactly (no numerical differentiation).
+//! * **Within every limit.** The avoided path is then time-scaled like any other
+//!   ([`crate::timescale`]): every wheel speed and acceleration, steering rate and
+//!   acceleration and leg speed within its share, C² clock, steering references for the
+//!   wheels the ICR rests on, dwells at stops. The runtime always scales an avoided path
+//!   (with the default margins when the scaling is off): it is a path the avoidance made,
+//!   not the timing the user gave, and only its scaling keeps it within the limits. The
+//!   controller then follows a reference within the limits, and its errors are measured
+//!   against it.
+//! * **What the record shows.** Each cycle records the filter's state at the path time the
+//!   clock has reached (active, ICR, distances, radii, δ): the seed-001 experiment still
+//!   shows its avoidance acting where the nominal ICR passes the wheels.
+//! * **Cost.** One pass of the filter per cycle of the trajectory before the run (as online)
+//!   and one vector of δ per cycle (56 bytes a cycle: 3.4 MB an hour); planning only, nothing
+//!   in the cycle path.
+//!
 //! # Live commands: the avoidance at the velocity level
 //!
 //! Everything above filters a *trajectory*: a reference with a pose to return to. A live
@@ -187,6 +240,19 @@ pub enum AvoidanceError {
         radii: f64,
         /// Distance between the two contact points (m).
         distance: f64,
+    },
+    /// Along a pre-planned trajectory the return loop had not brought the deviation back
+    /// to zero this long after the trajectory's end ([`AvoidedTrajectory::plan`]).
+    #[error(
+        "the avoidance's deviation from the trajectory ({deviation:.4}) has not returned to \
+         zero {after_s} s after its end; end the trajectory with the ICR away from the wheels \
+         or run with the avoidance off"
+    )]
+    Unsettled {
+        /// Time after the end (s).
+        after_s: f64,
+        /// Largest component of the remaining deviation (m or rad).
+        deviation: f64,
     },
     /// Eq. 20 makes a field reach the platform centre (where the ICR of a pure rotation is).
     #[error(
@@ -991,6 +1057,202 @@ pub fn avoid_twist(
     out.active = true;
     out.push = p;
     out
+}
+
+/// Longest time (s) the return loop may take after a trajectory's end to bring the deviation
+/// back to zero in [`AvoidedTrajectory::plan`] (ten times the settling time of the default
+/// return loop, ω_n = 3 rad/s).
+pub const MAX_RETURN_S: f64 = 20.0;
+
+/// Seed 001's avoidance applied to a pre-planned trajectory before the run (module docs,
+/// "Pre-planned trajectories"): the nominal z*(t) plus the deviation δ(t) the filter
+/// [`Avoidance::step`] produces along it at the cycle period, δ interpolated by the uniform
+/// cubic B-spline whose control points are the filter's δ_k. The result is C² with bounded
+/// jerk, so [`crate::timescale::ScaledTrajectory`] can time it within every limit.
+pub struct AvoidedTrajectory {
+    inner: Box<dyn crate::trajectory::Trajectory>,
+    n: usize,
+    /// Cycle period of the filter (s): the knot spacing.
+    dt: f64,
+    /// δ_k at t_k = k dt (control points of the B-spline).
+    delta: Vec<ZVec>,
+    /// The filter's record at each knot.
+    states: Vec<AvoidanceState>,
+    /// Duration: the inner one, or the end of the return loop after it (s).
+    duration: f64,
+}
+
+impl std::fmt::Debug for AvoidedTrajectory {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("AvoidedTrajectory")
+            .field("n", &self.n)
+            .field("dt", &self.dt)
+            .field("knots", &self.delta.len())
+            .field("duration", &self.duration)
+            .finish()
+    }
+}
+
+impl AvoidedTrajectory {
+    /// Runs [`Avoidance::step`] with `cfg` along `inner` at the platform's cycle period, from
+    /// its start to its end and on, with the trajectory at its goal, until the return loop
+    /// has brought the deviation back to exactly zero. Fails when `cfg` is invalid for `p`,
+    /// or when the deviation has not returned [`MAX_RETURN_S`] after the end.
+    pub fn plan(
+        p: &Platform,
+        inner: Box<dyn crate::trajectory::Trajectory>,
+        cfg: AvoidanceConfig,
+    ) -> Result<Self, AvoidanceError> {
+        let mut av = Avoidance::try_new(p, cfg)?;
+        let dt = p.dt();
+        let n = p.n().min(inner.n_legs()).min(MAX_WHEELS);
+        let end = inner.duration();
+        if !(end.is_finite() && end >= 0.0 && dt > 0.0 && dt.is_finite()) {
+            return Err(AvoidanceError::Invalid {
+                field: "trajectory duration",
+                value: end,
+                reason: "must be a finite time of zero or more",
+            });
+        }
+        let last_nominal = (end / dt).ceil() as usize;
+        let last_allowed = last_nominal + (MAX_RETURN_S / dt).ceil() as usize;
+        let mut delta = Vec::with_capacity(last_nominal + 2);
+        let mut states = Vec::with_capacity(last_nominal + 2);
+        let mut k = 0usize;
+        loop {
+            let t = k as f64 * dt;
+            let nominal = inner.sample(t.min(end));
+            let (_, st) = av.step(p, &nominal, dt);
+            delta.push(st.deviation);
+            states.push(st);
+            if k >= last_nominal && av.is_zero() && !st.active {
+                break;
+            }
+            if k >= last_allowed {
+                return Err(AvoidanceError::Unsettled {
+                    after_s: MAX_RETURN_S,
+                    deviation: av.delta.amax(),
+                });
+            }
+            k += 1;
+        }
+        // Two zero knots after the last: the B-spline reaches δ = 0 at rest.
+        delta.push(ZVec::zeros());
+        states.push(AvoidanceState::default());
+        let duration = end.max((delta.len() - 1) as f64 * dt);
+        Ok(Self {
+            inner,
+            n,
+            dt,
+            delta,
+            states,
+            duration,
+        })
+    }
+
+    /// The trajectory the avoidance was applied to.
+    pub fn inner(&self) -> &dyn crate::trajectory::Trajectory {
+        self.inner.as_ref()
+    }
+
+    /// The filter's record at the knot nearest to time `t` (s).
+    pub fn state_at(&self, t: f64) -> AvoidanceState {
+        let k = if t.is_finite() && t > 0.0 {
+            ((t / self.dt).round() as usize).min(self.states.len() - 1)
+        } else {
+            0
+        };
+        self.states[k]
+    }
+
+    /// Control point k of the B-spline (zero outside the knots).
+    fn point(&self, k: isize) -> ZVec {
+        if k < 0 {
+            return ZVec::zeros();
+        }
+        self.delta
+            .get(k as usize)
+            .copied()
+            .unwrap_or_else(ZVec::zeros)
+    }
+
+    /// δ, δ̇, δ̈, δ⃛ at time `t` (uniform cubic B-spline over the knots).
+    fn deviation(&self, t: f64) -> [ZVec; 4] {
+        let x = (t / self.dt).max(0.0);
+        let k = x.floor();
+        let u = x - k;
+        let k = k as isize;
+        let (c0, c1, c2, c3) = (
+            self.point(k - 1),
+            self.point(k),
+            self.point(k + 1),
+            self.point(k + 2),
+        );
+        let v = 1.0 - u;
+        let h = self.dt;
+        let pos = (c0 * (v * v * v)
+            + c1 * (3.0 * u * u * u - 6.0 * u * u + 4.0)
+            + c2 * (-3.0 * u * u * u + 3.0 * u * u + 3.0 * u + 1.0)
+            + c3 * (u * u * u))
+            / 6.0;
+        let vel = (c0 * (-3.0 * v * v)
+            + c1 * (9.0 * u * u - 12.0 * u)
+            + c2 * (-9.0 * u * u + 6.0 * u + 3.0)
+            + c3 * (3.0 * u * u))
+            / (6.0 * h);
+        let acc = (c0 * v + c1 * (3.0 * u - 2.0) + c2 * (1.0 - 3.0 * u) + c3 * u) / (h * h);
+        let jerk = (c1 * 3.0 - c0 - c2 * 3.0 + c3) / (h * h * h);
+        [pos, vel, acc, jerk]
+    }
+}
+
+impl crate::trajectory::Trajectory for AvoidedTrajectory {
+    fn sample(&self, t: f64) -> ReferenceSample {
+        let t = if t.is_finite() {
+            t.clamp(0.0, self.duration)
+        } else {
+            0.0
+        };
+        let mut r = self.inner.sample(t.min(self.inner.duration()));
+        r.t = t;
+        let [d, dd, ddd, dddd] = self.deviation(t);
+        let c = 3 + self.n;
+        for j in 0..c {
+            r.z[j] += d[j];
+            r.dz[j] += dd[j];
+            r.ddz[j] += ddd[j];
+            r.dddz[j] += dddd[j];
+        }
+        r
+    }
+    fn duration(&self) -> f64 {
+        self.duration
+    }
+    fn n_legs(&self) -> usize {
+        self.inner.n_legs()
+    }
+    fn timed_at(&self, t: f64) -> bool {
+        self.inner.timed_at(t.min(self.inner.duration()))
+    }
+    fn waypoint_near(&self, t: f64) -> Option<usize> {
+        self.inner.waypoint_near(t.min(self.inner.duration()))
+    }
+    fn stops(&self) -> Vec<(f64, f64)> {
+        // The inner stops where the deviation is zero around them (the B-spline's support:
+        // two knots either side); the end of the return loop is found by the time scaling.
+        self.inner
+            .stops()
+            .into_iter()
+            .filter(|&(a, b)| {
+                let lo = (a / self.dt).floor() as isize - 2;
+                let hi = (b / self.dt).ceil() as isize + 2;
+                (lo..=hi).all(|k| self.point(k).iter().all(|v| *v == 0.0))
+            })
+            .collect()
+    }
+    fn avoidance_at(&self, t: f64) -> Option<AvoidanceState> {
+        Some(self.state_at(t))
+    }
 }
 
 /// Analytic steering rate φ̇_i = (u × u̇)/|u|² and rolling speed |u_i| (m/s) of every wheel

@@ -2341,6 +2341,10 @@ impl Trajectory for ScaledTrajectory {
     fn timing(&self) -> Option<Timing> {
         Some(self.timing)
     }
+    fn avoidance_at(&self, t: f64) -> Option<crate::avoidance::AvoidanceState> {
+        // The avoided path's record at the path time the clock has reached.
+        self.inner.avoidance_at(self.clock(t).0)
+    }
 }
 
 #[cfg(test)]

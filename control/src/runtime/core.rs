@@ -101,6 +101,19 @@ fn prepare_trajectory(
     if trajectory.time_scale(0.0).is_some() {
         return Ok(trajectory);
     }
+    // With the avoidance on, it acts on the path before the run, and the avoided path (a
+    // path the avoidance made, not the one given) is always time-scaled within every limit,
+    // with the configured margins or, when the scaling is off, the default ones
+    // (`crate::avoidance`, "Pre-planned trajectories"). A configuration that fails
+    // validation is off, as online.
+    if let Some(a) = cfg.avoidance.filter(|a| a.enabled && a.validate(p).is_ok()) {
+        let avoided = crate::avoidance::AvoidedTrajectory::plan(p, trajectory, a)?;
+        return Ok(Box::new(crate::timescale::ScaledTrajectory::plan(
+            p,
+            Box::new(avoided),
+            cfg.time_scaling.unwrap_or_default(),
+        )?));
+    }
     match cfg.time_scaling {
         Some(ts) => Ok(Box::new(crate::timescale::ScaledTrajectory::plan(
             p, trajectory, ts,
@@ -1117,6 +1130,28 @@ impl CycleCore {
                 rec.d_start = a.d_start;
             }
             return (*nominal, rec);
+        }
+        let tracking = self.sup.state() == SupervisorState::Tracking;
+        if let Source::Trajectory(s) = &self.source {
+            // A path avoided before the run: the sample is the avoided reference; the record
+            // is the avoidance's at the path time the clock has reached.
+            let t_ref = self.reference_time().min(s.traj.duration());
+            if let Some(st) = s.traj.avoidance_at(t_ref) {
+                let mut rec = icr_record(nominal, &self.wheel_xy[..self.n]);
+                if tracking {
+                    let mut d = [0.0; 3 + MAX_WHEELS];
+                    d.copy_from_slice(st.deviation.as_slice());
+                    rec = AvoidanceRecord {
+                        icr_body: st.icr_body,
+                        active: st.active,
+                        min_distance: st.min_distance,
+                        nearest_wheel: st.nearest_wheel,
+                        d_start: st.d_start,
+                        deviation: d,
+                    };
+                }
+                return (*nominal, rec);
+            }
         }
         match (&mut self.avoidance, self.sup.state()) {
             (Some(a), SupervisorState::Tracking) => {
