@@ -1136,10 +1136,12 @@ impl AvoidedTrajectory {
             }
             k += 1;
         }
-        // Two zero knots after the last: the B-spline reaches δ = 0 at rest.
-        delta.push(ZVec::zeros());
-        states.push(AvoidanceState::default());
-        let duration = end.max((delta.len() - 1) as f64 * dt);
+        // Control point j shapes the B-spline over ((j − 2) Δt, (j + 2) Δt): after the last
+        // non-zero one δ is zero, at rest.
+        let duration = match delta.iter().rposition(|d| d.iter().any(|v| *v != 0.0)) {
+            Some(j) => end.max((j + 2) as f64 * dt),
+            None => end,
+        };
         Ok(Self {
             inner,
             n,
@@ -1174,6 +1176,12 @@ impl AvoidedTrajectory {
             .get(k as usize)
             .copied()
             .unwrap_or_else(ZVec::zeros)
+    }
+
+    /// Whether the four control points that make the B-spline at `t` are all zero.
+    fn zero_around(&self, t: f64) -> bool {
+        let k = (t / self.dt).max(0.0).floor() as isize;
+        (k - 1..=k + 2).all(|j| self.point(j).iter().all(|v| *v == 0.0))
     }
 
     /// δ, δ̇, δ̈, δ⃛ at time `t` (uniform cubic B-spline over the knots).
@@ -1215,6 +1223,10 @@ impl crate::trajectory::Trajectory for AvoidedTrajectory {
         };
         let mut r = self.inner.sample(t.min(self.inner.duration()));
         r.t = t;
+        if self.zero_around(t) {
+            // No deviation here: the nominal sample itself, bit for bit.
+            return r;
+        }
         let [d, dd, ddd, dddd] = self.deviation(t);
         let c = 3 + self.n;
         for j in 0..c {
@@ -2078,6 +2090,149 @@ mod tests {
         let (m, st) = av.step(&p, &r, 0.004);
         assert_eq!(m, r);
         assert!(!st.active && st.min_distance > 0.3);
+    }
+
+    #[test]
+    fn an_avoided_path_that_never_enters_a_field_is_the_nominal_bit_for_bit() {
+        use crate::trajectory::Trajectory;
+        let p = Platform::justin();
+        // ICR circling at 0.2 m: never inside a field.
+        let sc = Seed001Scenario::with(&p, 0.2, 1.0, 3.0);
+        let a = AvoidedTrajectory::plan(&p, Box::new(sc), AvoidanceConfig::default()).unwrap();
+        assert_eq!(a.duration().to_bits(), sc.duration().to_bits());
+        for k in 0..=3000 {
+            let t = sc.duration() * k as f64 / 3000.0;
+            assert_eq!(a.sample(t), sc.sample(t), "t = {t}");
+            assert!(!a.state_at(t).active);
+        }
+    }
+
+    #[test]
+    fn the_avoided_path_is_the_filters_output_c2_and_returns_to_the_goal() {
+        use crate::trajectory::Trajectory;
+        let p = Platform::justin();
+        let dt = p.dt();
+        let sc = Seed001Scenario::new(&p);
+        let cfg = AvoidanceConfig::default();
+        let a = AvoidedTrajectory::plan(&p, Box::new(sc), cfg).unwrap();
+        // The filter online, on the same nominal samples.
+        let mut online = Avoidance::new(&p, cfg);
+        let (mut max_dz, mut max_ddz, mut max_dev): (f64, f64, f64) = (0.0, 0.0, 0.0);
+        let (mut active, mut snaps, mut off_knots) = (0, 0, 0);
+        let knots = (a.duration() / dt).round() as usize;
+        for k in 0..=knots {
+            let t = k as f64 * dt;
+            let (m, st) = online.step(&p, &sc.sample(t.min(sc.duration())), dt);
+            let s = a.sample(t);
+            active += usize::from(st.active);
+            snaps += usize::from(st.deviating && online.is_zero());
+            assert_eq!(a.state_at(t).active, st.active, "t = {t}");
+            let mut off = false;
+            for j in 0..7 {
+                let acc = st.deviation_accel[j].abs();
+                // Value and rate at a knot: the filter's, to δ̈ Δt²/6 and δ̈ Δt/2 (and the
+                // settle tolerance where the filter snaps its deviation to zero).
+                let tol = cfg.settle_tolerance;
+                assert!(
+                    (s.z[j] - m.z[j]).abs() <= acc * dt * dt / 6.0 + tol,
+                    "z[{j}] at {t}: {} vs {}",
+                    s.z[j],
+                    m.z[j]
+                );
+                assert!(
+                    (s.dz[j] - m.dz[j]).abs() <= acc * dt / 2.0 + tol / dt,
+                    "ż[{j}] at {t}"
+                );
+                let e = (s.ddz[j] - m.ddz[j]).abs();
+                if e > 1e-6 {
+                    off = true;
+                } else {
+                    max_dz = max_dz.max((s.dz[j] - m.dz[j]).abs() - acc * dt / 2.0);
+                }
+                max_ddz = max_ddz.max(e);
+                max_dev = max_dev.max((s.z[j] - sc.sample(t.min(sc.duration())).z[j]).abs());
+            }
+            off_knots += usize::from(off);
+            // C²: no jump of z, ż, z̈ across the knot (the jerk is piecewise constant).
+            let (b, c) = (a.sample(t - 1e-7), a.sample(t + 1e-7));
+            for j in 0..7 {
+                let jerk = b.dddz[j].abs().max(c.dddz[j].abs());
+                assert!(
+                    (c.ddz[j] - b.ddz[j]).abs() <= jerk * 2e-7 + 1e-6,
+                    "z̈[{j}] at {t}"
+                );
+                assert!((c.dz[j] - b.dz[j]).abs() <= 1e-6, "ż[{j}] at {t}");
+            }
+        }
+        println!(
+            "seed 001 avoided: {active} active knots, largest deviation {max_dev:.4}, \
+             rate excess {max_dz:.2e}, {off_knots} knots whose acceleration is not the \
+             filter's ({snaps} snaps to zero; largest difference {max_ddz:.2e})"
+        );
+        assert!(active > 100, "the avoidance acts along seed 001: {active}");
+        assert!(max_dev > 0.02, "and moves the path: {max_dev}");
+        assert!(max_dz <= 1e-9, "{max_dz}");
+        // At a knot the B-spline's acceleration is the filter's δ̈, except next to the
+        // filter's snaps of δ to zero (the snap is a jump online; a blip of acceleration
+        // here, at most 2 × tolerance / Δt²).
+        assert!(off_knots <= 3 * snaps, "{off_knots} knots, {snaps} snaps");
+        assert!(
+            max_ddz <= 2.0 * cfg.settle_tolerance / (dt * dt),
+            "{max_ddz}"
+        );
+        // It ends at the nominal goal, at rest, the deviation returned to zero.
+        let end = a.sample(a.duration());
+        let goal = sc.sample(sc.duration());
+        assert!(a.duration() >= sc.duration());
+        for j in 0..7 {
+            assert!((end.z[j] - goal.z[j]).abs() < 1e-12, "z[{j}]");
+            assert!(end.dz[j] == 0.0 && end.ddz[j] == 0.0, "at rest: {end:?}");
+        }
+    }
+
+    #[test]
+    fn the_time_scaled_avoided_path_keeps_the_icr_where_the_avoidance_put_it() {
+        use crate::timescale::{ScaledTrajectory, TimeScaleConfig, VERIFY_TOLERANCE};
+        use crate::trajectory::Trajectory;
+        let p = Platform::justin();
+        let sc = Seed001Scenario::new(&p);
+        let avoided =
+            AvoidedTrajectory::plan(&p, Box::new(sc), AvoidanceConfig::default()).unwrap();
+        let reference =
+            AvoidedTrajectory::plan(&p, Box::new(sc), AvoidanceConfig::default()).unwrap();
+        let scaled =
+            ScaledTrajectory::plan(&p, Box::new(avoided), TimeScaleConfig::default()).unwrap();
+        let timing = scaled.timing().unwrap();
+        println!("seed 001 avoided and scaled: {timing:?}");
+        // Within every limit (the nominal asks 5× the steering acceleration limit).
+        assert!(timing.max_ratio <= 1.0 + VERIFY_TOLERANCE, "{timing:?}");
+        assert!(timing.min_scale < 1.0, "slowed somewhere: {timing:?}");
+        // The clock changes the timing, not the ICR: every ICR–wheel distance of the scaled
+        // reference is the avoided path's at the clock's path time.
+        let mut checked = 0;
+        for k in 0..=4000 {
+            let t = scaled.duration() * k as f64 / 4000.0;
+            let (tau, v, _, _) = scaled.clock(t);
+            if v < 1e-3 {
+                continue;
+            }
+            let ds = icr_wheel_distances(&p, &scaled.sample(t));
+            let da = icr_wheel_distances(&p, &reference.sample(tau));
+            for i in 0..4 {
+                if da[i].is_finite() && da[i] < 1.0 {
+                    assert!(
+                        (ds[i] - da[i]).abs() <= 1e-9 * (1.0 + da[i]),
+                        "t {t} wheel {i}"
+                    );
+                    checked += 1;
+                }
+            }
+            assert_eq!(
+                scaled.avoidance_at(t).unwrap().active,
+                reference.state_at(tau).active
+            );
+        }
+        assert!(checked > 1000, "{checked}");
     }
 
     /// Leg directions and legs of the Justin default, for [`avoid_twist`].
