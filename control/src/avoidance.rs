@@ -135,9 +135,10 @@
 //! * **What the record shows.** Each cycle records the filter's state at the path time the
 //!   clock has reached (active, ICR, distances, radii, δ): the seed-001 experiment still
 //!   shows its avoidance acting where the nominal ICR passes the wheels.
-//! * **Cost.** One pass of the filter per cycle of the trajectory before the run (as online)
-//!   and one vector of δ per cycle (56 bytes a cycle: 3.4 MB an hour); planning only, nothing
-//!   in the cycle path.
+//! * **Cost.** One pass of the filter per cycle of the trajectory before the run (as online),
+//!   and 8 (3 + n) bytes per cycle of δ over the stretches where it is not zero (56 bytes a
+//!   cycle, 14 kB per second of avoided motion); nothing else is stored. Per cycle of the
+//!   run, [`AvoidedTrajectory::state_at`] gives the record (no allocation).
 //!
 //! # Live commands: the avoidance at the velocity level
 //!
@@ -1071,13 +1072,16 @@ pub const MAX_RETURN_S: f64 = 20.0;
 /// jerk, so [`crate::timescale::ScaledTrajectory`] can time it within every limit.
 pub struct AvoidedTrajectory {
     inner: Box<dyn crate::trajectory::Trajectory>,
+    platform: Platform,
+    cfg: AvoidanceConfig,
     n: usize,
     /// Cycle period of the filter (s): the knot spacing.
     dt: f64,
-    /// δ_k at t_k = k dt (control points of the B-spline).
-    delta: Vec<ZVec>,
-    /// The filter's record at each knot.
-    states: Vec<AvoidanceState>,
+    /// Runs of consecutive knots whose δ_k is not zero: (first knot, δ of each, 3 + n
+    /// values per knot). δ_k is zero between them, so only the avoided stretches cost memory.
+    spans: Vec<(usize, Vec<f64>)>,
+    /// Knot intervals [a, b) in which the repulsion acted (the filter's `active`).
+    active: Vec<(usize, usize)>,
     /// Duration: the inner one, or the end of the return loop after it (s).
     duration: f64,
 }
@@ -1087,7 +1091,8 @@ impl std::fmt::Debug for AvoidedTrajectory {
         f.debug_struct("AvoidedTrajectory")
             .field("n", &self.n)
             .field("dt", &self.dt)
-            .field("knots", &self.delta.len())
+            .field("spans", &self.spans.len())
+            .field("active", &self.active)
             .field("duration", &self.duration)
             .finish()
     }
@@ -1106,6 +1111,7 @@ impl AvoidedTrajectory {
         let mut av = Avoidance::try_new(p, cfg)?;
         let dt = p.dt();
         let n = p.n().min(inner.n_legs()).min(MAX_WHEELS);
+        let m = 3 + n;
         let end = inner.duration();
         if !(end.is_finite() && end >= 0.0 && dt > 0.0 && dt.is_finite()) {
             return Err(AvoidanceError::Invalid {
@@ -1116,15 +1122,30 @@ impl AvoidedTrajectory {
         }
         let last_nominal = (end / dt).ceil() as usize;
         let last_allowed = last_nominal + (MAX_RETURN_S / dt).ceil() as usize;
-        let mut delta = Vec::with_capacity(last_nominal + 2);
-        let mut states = Vec::with_capacity(last_nominal + 2);
+        let mut spans: Vec<(usize, Vec<f64>)> = Vec::new();
+        let mut active: Vec<(usize, usize)> = Vec::new();
+        let mut last_nonzero = None;
         let mut k = 0usize;
         loop {
             let t = k as f64 * dt;
             let nominal = inner.sample(t.min(end));
             let (_, st) = av.step(p, &nominal, dt);
-            delta.push(st.deviation);
-            states.push(st);
+            let d = &st.deviation.as_slice()[..m];
+            if d.iter().any(|v| *v != 0.0) {
+                match spans.last_mut() {
+                    Some((first, values)) if *first + values.len() / m == k => {
+                        values.extend_from_slice(d)
+                    }
+                    _ => spans.push((k, d.to_vec())),
+                }
+                last_nonzero = Some(k);
+            }
+            if st.active {
+                match active.last_mut() {
+                    Some((_, b)) if *b == k => *b = k + 1,
+                    _ => active.push((k, k + 1)),
+                }
+            }
             if k >= last_nominal && av.is_zero() && !st.active {
                 break;
             }
@@ -1138,16 +1159,18 @@ impl AvoidedTrajectory {
         }
         // Control point j shapes the B-spline over ((j − 2) Δt, (j + 2) Δt): after the last
         // non-zero one δ is zero, at rest.
-        let duration = match delta.iter().rposition(|d| d.iter().any(|v| *v != 0.0)) {
+        let duration = match last_nonzero {
             Some(j) => end.max((j + 2) as f64 * dt),
             None => end,
         };
         Ok(Self {
             inner,
+            platform: p.clone(),
+            cfg,
             n,
             dt,
-            delta,
-            states,
+            spans,
+            active,
             duration,
         })
     }
@@ -1157,25 +1180,65 @@ impl AvoidedTrajectory {
         self.inner.as_ref()
     }
 
-    /// The filter's record at the knot nearest to time `t` (s).
-    pub fn state_at(&self, t: f64) -> AvoidanceState {
-        let k = if t.is_finite() && t > 0.0 {
-            ((t / self.dt).round() as usize).min(self.states.len() - 1)
+    /// The knot nearest to time `t` (s).
+    fn knot(&self, t: f64) -> usize {
+        if t.is_finite() && t > 0.0 {
+            (t.min(self.duration) / self.dt).round() as usize
         } else {
             0
-        };
-        self.states[k]
+        }
     }
 
-    /// Control point k of the B-spline (zero outside the knots).
-    fn point(&self, k: isize) -> ZVec {
-        if k < 0 {
-            return ZVec::zeros();
+    /// The filter's record at the knot nearest to time `t` (s): whether the repulsion acted
+    /// there and δ_k as the filter had them; the ICR, its distances and the field radii of
+    /// the avoided path there, the rate and acceleration of δ from the B-spline. No
+    /// allocation.
+    pub fn state_at(&self, t: f64) -> AvoidanceState {
+        let k = self.knot(t);
+        let tk = k as f64 * self.dt;
+        let r = crate::trajectory::Trajectory::sample(self, tk);
+        let nominal = self.inner.sample(tk.min(self.inner.duration()));
+        let scan = scan_fields(&self.platform, &self.cfg, &r, &nominal.z);
+        let i = self.active.partition_point(|&(a, _)| a <= k);
+        let active = i > 0 && k < self.active[i - 1].1;
+        let delta = self.point(k as isize);
+        let [_, rate, accel, _] = self.deviation(tk);
+        let force = match scan.nearest {
+            Some(w) if active => repulsive_force(scan.dist[w], scan.radius[w], self.cfg.f_max),
+            _ => 0.0,
+        };
+        AvoidanceState {
+            active,
+            deviating: active || !self.zero_around(tk),
+            icr_body: scan.icr,
+            nearest_wheel: scan.nearest,
+            min_distance: scan.min_distance,
+            d_start: scan.radius,
+            force,
+            deviation: delta,
+            deviation_rate: rate,
+            deviation_accel: accel,
         }
-        self.delta
-            .get(k as usize)
-            .copied()
-            .unwrap_or_else(ZVec::zeros)
+    }
+
+    /// Control point k of the B-spline: δ_k, zero outside the spans.
+    fn point(&self, k: isize) -> ZVec {
+        let mut out = ZVec::zeros();
+        if k < 0 {
+            return out;
+        }
+        let k = k as usize;
+        let m = 3 + self.n;
+        let i = self.spans.partition_point(|(first, _)| *first <= k);
+        if i == 0 {
+            return out;
+        }
+        let (first, values) = &self.spans[i - 1];
+        let j = k - first;
+        if let Some(d) = values.get(j * m..(j + 1) * m) {
+            out.as_mut_slice()[..m].copy_from_slice(d);
+        }
+        out
     }
 
     /// Whether the four control points that make the B-spline at `t` are all zero.
