@@ -90,14 +90,28 @@ fn check_speeds(p: &Platform, traj: &dyn Trajectory) -> Result<(), RuntimeError>
     Ok(())
 }
 
-/// The trajectory the core follows: time-scaled into the limits
-/// ([`RuntimeConfig::time_scaling`]), unless it already is or scaling is off (then it must
-/// stay within the speed limits as given).
+/// The trajectory the core follows: with the avoidance on, the avoided path time-scaled
+/// into the limits; otherwise time-scaled into the limits ([`RuntimeConfig::time_scaling`]),
+/// unless it already is or scaling is off (then it must stay within the speed limits as
+/// given).
 fn prepare_trajectory(
     p: &Platform,
     trajectory: Box<dyn Trajectory>,
     cfg: &RuntimeConfig,
 ) -> Result<Box<dyn Trajectory>, RuntimeError> {
+    // With the avoidance on, it acts on the path before the run, and the avoided path (a
+    // path the avoidance made, not the one given) is always time-scaled within every limit,
+    // with the configured margins or, when the scaling is off, the default ones
+    // (`crate::avoidance`, "Pre-planned trajectories"); a trajectory already time-scaled is
+    // avoided and scaled again. A configuration that fails validation is off, as online.
+    if let Some(a) = cfg.avoidance.filter(|a| a.enabled && a.validate(p).is_ok()) {
+        let avoided = crate::avoidance::AvoidedTrajectory::plan(p, trajectory, a)?;
+        return Ok(Box::new(crate::timescale::ScaledTrajectory::plan(
+            p,
+            Box::new(avoided),
+            cfg.time_scaling.unwrap_or_default(),
+        )?));
+    }
     if trajectory.time_scale(0.0).is_some() {
         return Ok(trajectory);
     }
@@ -1104,8 +1118,12 @@ impl CycleCore {
         }
     }
 
-    /// Singularity avoidance of this cycle's reference (seed 001). A trajectory's reference
-    /// goes through [`Avoidance::step`] while tracking. Live commands were avoided before the
+    /// Singularity avoidance of this cycle's reference (seed 001). A trajectory was avoided
+    /// before the run ([`crate::avoidance::AvoidedTrajectory`], built by
+    /// `prepare_trajectory` whenever the avoidance is on): its sample is the avoided
+    /// reference, and the record is the filter's state at the clock's path time; a
+    /// trajectory without that record would go through [`Avoidance::step`] while tracking
+    /// (none does when the configuration is valid). Live commands were avoided before the
     /// shaper ([`crate::avoidance`], "Live commands"): the shaped reference is followed as it
     /// is, and the record says whether the command's ICR was moved out of a field.
     fn avoid(&mut self, nominal: &ReferenceSample, dt: f64) -> (ReferenceSample, AvoidanceRecord) {
@@ -1117,6 +1135,28 @@ impl CycleCore {
                 rec.d_start = a.d_start;
             }
             return (*nominal, rec);
+        }
+        let tracking = self.sup.state() == SupervisorState::Tracking;
+        if let Source::Trajectory(s) = &self.source {
+            // A path avoided before the run: the sample is the avoided reference; the record
+            // is the avoidance's at the path time the clock has reached.
+            let t_ref = self.reference_time().min(s.traj.duration());
+            if let Some(st) = s.traj.avoidance_at(t_ref) {
+                let mut rec = icr_record(nominal, &self.wheel_xy[..self.n]);
+                if tracking {
+                    let mut d = [0.0; 3 + MAX_WHEELS];
+                    d.copy_from_slice(st.deviation.as_slice());
+                    rec = AvoidanceRecord {
+                        icr_body: st.icr_body,
+                        active: st.active,
+                        min_distance: st.min_distance,
+                        nearest_wheel: st.nearest_wheel,
+                        d_start: st.d_start,
+                        deviation: d,
+                    };
+                }
+                return (*nominal, rec);
+            }
         }
         match (&mut self.avoidance, self.sup.state()) {
             (Some(a), SupervisorState::Tracking) => {

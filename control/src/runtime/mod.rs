@@ -176,6 +176,10 @@ pub enum RuntimeError {
     /// stop), or would last too long slowed into the limits.
     #[error(transparent)]
     TimeScale(#[from] crate::timescale::TimeScaleError),
+    /// The avoidance applied to the trajectory before the run did not return to it
+    /// ([`crate::avoidance::AvoidedTrajectory`]).
+    #[error(transparent)]
+    Avoidance(#[from] crate::avoidance::AvoidanceError),
     /// The trajectory's duration is not a finite time the runtime can check and run.
     #[error("the trajectory lasts {} s: it must be a finite time of at most {} s (10 h); split longer runs", Num(*duration), crate::trajectory::MAX_WAYPOINT_TIME_S)]
     Duration {
