@@ -892,6 +892,7 @@ mod tests {
             len: 8,
             data: [1, 2, 3, 4, 5, 6, 7, 8],
             error: None,
+            bus: 0,
         });
         if k.is_multiple_of(5) {
             r.push_rx(FrameRecord {
@@ -900,6 +901,7 @@ mod tests {
                 len: 8,
                 data: [9; 8],
                 error: Some("crc"),
+                bus: 0,
             });
         }
         r.push_tx(FrameRecord {
@@ -908,6 +910,7 @@ mod tests {
             len: 4,
             data: [0; 8],
             error: None,
+            bus: 0,
         });
         r.pose.x = k as f64;
         r

@@ -552,6 +552,21 @@ impl Platform {
             .clamp(1, MAX_BUSES)
     }
 
+    /// The part of the platform on bus `b`: its wheels in wheel order (and their `[cia402]`
+    /// entries), everything else as it is. What one bus's link is built from.
+    pub fn bus_subset(&self, b: usize) -> Self {
+        let mine: Vec<usize> = self.wheels_on_bus(b).collect();
+        let mut p = self.clone();
+        p.wheels = mine.iter().map(|&i| self.wheels[i]).collect();
+        let mut c = self.cia402();
+        c.wheels = mine
+            .iter()
+            .filter_map(|&i| c.wheels.get(i).copied())
+            .collect();
+        p.cia402 = Some(c);
+        p
+    }
+
     /// The wheels on bus `b`, as indices in wheel order.
     pub fn wheels_on_bus(&self, b: usize) -> impl Iterator<Item = usize> + '_ {
         self.wheels

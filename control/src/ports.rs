@@ -141,8 +141,10 @@ pub struct Diagnostics {
     /// Per wheel, in controller order (first `n` valid).
     pub modules: [ModuleDiagnostics; MAX_WHEELS],
     /// Measured bus load over the last second: frame bits (worst-case stuffing) seen on the
-    /// bus per second over the bit rate (0..1+).
+    /// bus per second over the bit rate (0..1+); with two buses, the busier one's.
     pub bus_load: f64,
+    /// The same per bus (`wheels[i].bus`; entries past the platform's buses are 0).
+    pub bus_loads: [f64; crate::platform::MAX_BUSES],
     /// Cycles whose control step finished after the next cycle's deadline (real time).
     pub deadline_misses: u64,
 }

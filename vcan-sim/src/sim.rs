@@ -239,7 +239,15 @@ impl Simulator {
             Protocol::Native => Modules::Native(
                 nodes_vec
                     .iter()
-                    .map(|&n| ModuleFirmware::new(n, cfg.firmware))
+                    .zip(&platform.wheels)
+                    .map(|(&n, w)| {
+                        let f = ModuleFirmware::new(n, cfg.firmware);
+                        if w.leg {
+                            f
+                        } else {
+                            f.without_leg()
+                        }
+                    })
                     .collect(),
             ),
             Protocol::Cia402 => Modules::CanOpen(
