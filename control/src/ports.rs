@@ -113,6 +113,9 @@ pub struct JointState {
     pub leg: f64,
     /// Leg extension rate λ̇ (m/s).
     pub leg_rate: f64,
+    /// The wheel has no leg (a fixed footprint, `wheels[i].leg = false`): `leg` is its fixed
+    /// distance, `leg_rate` 0, and it has no leg joint (ROS 2 `joint_states` leaves it out).
+    pub no_leg: bool,
 }
 
 /// Receive-path and safety counters of one wheel module (or, with CiA 402, of the devices of

@@ -55,6 +55,8 @@ pub struct RunOptions {
     /// Serialize the simulator's frames on a bus of this bit rate (`None`: every frame
     /// arrives at its send time, as the native tests always ran).
     pub sim_bitrate: Option<u32>,
+    /// The controller's platform (`None`: Justin's); its `protocol` is set to `profile`.
+    pub platform: Option<Platform>,
 }
 
 impl RunOptions {
@@ -76,6 +78,7 @@ impl RunOptions {
             max_seconds: None,
             profile: Protocol::Native,
             sim_bitrate: None,
+            platform: None,
         }
     }
 
@@ -123,7 +126,7 @@ pub const AFTER_END: std::time::Duration = std::time::Duration::from_millis(500)
 /// Builds the controller core, the simulator and the virtual bus for `opts` (the core is not
 /// armed yet); also returns the trajectory's duration (s).
 pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstepBus, f64), String> {
-    let mut platform = Platform::justin();
+    let mut platform = opts.platform.clone().unwrap_or_else(Platform::justin);
     platform.protocol = opts.profile;
     let traj: Box<dyn rollbase_control::trajectory::Trajectory> =
         match (&opts.waypoint_specs, &opts.waypoints) {
@@ -319,6 +322,8 @@ pub struct LiveOptions {
     pub initial: Option<rollbase_vcan_sim::InitialState>,
     /// Give up after this many seconds of platform time.
     pub max_seconds: f64,
+    /// The platform (`None`: Justin's); its `protocol` is set to `profile`.
+    pub platform: Option<Platform>,
 }
 
 impl Default for LiveOptions {
@@ -330,13 +335,14 @@ impl Default for LiveOptions {
             profile: Protocol::Native,
             initial: None,
             max_seconds: 120.0,
+            platform: None,
         }
     }
 }
 
 /// The live core (not armed yet), the simulator and the virtual bus of `opts`.
 pub fn build_live(opts: &LiveOptions) -> (CycleCore, Simulator, VirtualLockstepBus) {
-    let mut platform = Platform::justin();
+    let mut platform = opts.platform.clone().unwrap_or_else(Platform::justin);
     platform.protocol = opts.profile;
     let rt = opts.runtime.clone();
     let core = CycleCore::new_live(platform.clone(), rt).expect("valid");

@@ -1674,6 +1674,7 @@ impl CycleCore {
                 wheel_speed: w.wheel_speed,
                 leg: w.leg,
                 leg_rate: w.leg_rate,
+                no_leg: !self.platform.wheels[i].leg,
             };
             let d = &mut self.diag[i];
             let watchdog = match self.link.wheel_fault(i) {
