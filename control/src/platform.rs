@@ -128,7 +128,9 @@ pub struct WheelConfig {
     /// Steering range [min, max] (rad) when the wheel cannot steer endlessly (cable stops):
     /// its steering angle never leaves it. `None`: endless (slip rings).
     pub steer_range: Option<[f64; 2]>,
-    /// The CAN bus the module is on (0 or 1; `--bus` is given once per bus, in this order).
+    /// The CAN bus the module is on (0 or 1). The cycle core runs one link per bus
+    /// ([`crate::link::Buses`]); the command line drives one bus so far, so `rollbase` refuses
+    /// to run a platform with wheels on bus 1 (`config check` accepts it).
     pub bus: u8,
     /// +1, or −1 for a rolling motor mounted mirrored: its positive direction rolls the
     /// wheel backwards. Applied to setpoints and feedback on the wire side (both profiles).
@@ -889,9 +891,7 @@ impl Platform {
             return Err(invalid(
                 f("bus"),
                 w.bus,
-                format!(
-                    "must be 0 or 1: rollbase drives at most {MAX_BUSES} buses, given as `--bus` once per bus in this order"
-                ),
+                format!("must be 0 or 1: a platform has at most {MAX_BUSES} buses"),
             ));
         }
         for (name, v) in [
