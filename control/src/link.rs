@@ -588,10 +588,10 @@ impl Buses {
         let mut local = [(0usize, 0usize); MAX_WHEELS];
         let mut node_bus = [0u8; 128];
         let mut links = Vec::with_capacity(nb);
-        for b in 0..nb {
+        for (b, g) in global.iter_mut().enumerate().take(nb) {
             let sub = if nb == 1 { p.clone() } else { p.bus_subset(b) };
             for (k, i) in p.wheels_on_bus(b).enumerate().take(MAX_WHEELS) {
-                global[b][k] = i;
+                g[k] = i;
                 if i < MAX_WHEELS {
                     local[i] = (b, k);
                 }
