@@ -1012,6 +1012,48 @@ mod tests {
     }
 
     #[test]
+    fn a_fixed_footprint_records_no_leg_joints_and_no_leg_topic() {
+        let dir = tmp("fixed");
+        let path = dir.join("f.mcap");
+        let mut rec = McapRecorder::create(&path, &BTreeMap::new()).unwrap();
+        for k in 0..50u64 {
+            let mut s = BaseState {
+                cycle: k,
+                t: k as f64 * 0.004,
+                log_time_ns: k * 4_000_000,
+                n: 3,
+                ..Default::default()
+            };
+            for j in &mut s.joints[..3] {
+                j.no_leg = true;
+                j.leg = 0.3;
+            }
+            rec.write_state(&s).unwrap();
+        }
+        let s = rec.finish().unwrap();
+        assert_eq!(s.messages["/joint_states"], 10);
+        assert!(
+            s.messages.keys().all(|t| !t.contains("leg")),
+            "{:?}",
+            s.messages
+        );
+        let bytes = std::fs::read(&path).unwrap();
+        let mut seen = 0;
+        for m in mcap::MessageStream::new(&bytes).unwrap() {
+            let m = m.unwrap();
+            if m.channel.topic == "/joint_states" {
+                let j: msg::JointState = msg::from_cdr(&m.data).unwrap();
+                assert_eq!(j.name.len(), 6, "{:?}", j.name);
+                assert!(j.name.iter().all(|n| !n.contains("leg")), "{:?}", j.name);
+                assert_eq!(j.position.len(), 6);
+                seen += 1;
+            }
+        }
+        assert_eq!(seen, 10);
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
+    #[test]
     fn state_topics_are_decimated_and_commands_recorded() {
         let dir = tmp("state");
         let path = dir.join("t.mcap");
