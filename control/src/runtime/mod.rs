@@ -131,6 +131,22 @@ impl RuntimeConfig {
                 ),
             });
         }
+        if let (ControllerKind::Dfl, Some((i, w))) = (
+            self.controller,
+            p.wheels.iter().enumerate().find(|(_, w)| w.off_centred()),
+        ) {
+            // The DFL's decoupling (seed 000 eq. 23, crate::dfl) is derived for centred
+            // steering, where each wheel's angle is a function of ż. With an offset the angles
+            // are states of their own (crate::model, "Off-centred steering").
+            return Err(RuntimeError::Option {
+                field: "controller",
+                value: "dfl".into(),
+                reason: format!(
+                    "the DFL is derived for centred steering, but wheels[{i}].caster_offset = {} m: use the kinematic controller (`--controller kinematic`), which commands off-centred wheels by the exact caster law",
+                    Num(w.caster_offset)
+                ),
+            });
+        }
         self.supervisor
             .validate(dt)
             .map_err(|(field, value, reason)| RuntimeError::Option {
@@ -138,6 +154,15 @@ impl RuntimeConfig {
                 value,
                 reason,
             })
+    }
+
+    /// The default controller for a platform: the DFL (seed 000's), or the kinematic
+    /// controller on a platform with off-centred wheels (which the DFL does not cover).
+    pub fn for_platform(mut self, p: &crate::platform::Platform) -> Self {
+        if p.has_caster_offset() {
+            self.controller = ControllerKind::Kinematic;
+        }
+        self
     }
 }
 
