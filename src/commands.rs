@@ -33,7 +33,7 @@
 //! The command port checks the values again (finite, within the sanity bounds, leg range)
 //! when they arrive; those rejections are counted, not fatal.
 
-use rollbase_control::ports::{CommandKind, LegTargets, MotionCommand};
+use rollbase_control::service::ports::{CommandKind, LegTargets, MotionCommand};
 use rollbase_control::types::Twist;
 use std::io::{BufRead, Read};
 use std::path::Path;
@@ -443,7 +443,7 @@ mod tests {
             CommandKind::Motion(m) => m,
             k => panic!("{k:?}"),
         };
-        let e = rollbase_control::command::check_motion(&p, &m).unwrap_err();
+        let e = rollbase_control::service::command::check_motion(&p, &m).unwrap_err();
         assert!(e.to_string().contains("`vy` is NaN"), "{e}");
         // Only bare words outside strings, never a field name, a word inside another or `t`.
         assert!(parse(r#"{"t": NaN, "stop": true}"#)

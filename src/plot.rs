@@ -1352,7 +1352,7 @@ fn timing(d: &Data, style: &Style, ctx: &Ctx) -> Result<(), PlotError> {
 mod tests {
     use super::*;
     use crate::record::McapRecorder;
-    use rollbase_control::record::CycleRecord;
+    use rollbase_control::runtime::record::CycleRecord;
     use rollbase_control::types::{Pose, MAX_WHEELS};
     use std::collections::BTreeMap;
 

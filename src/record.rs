@@ -46,8 +46,8 @@
 use crate::ros2::convert::StateSampler;
 use crate::ros2::msg::{self, Header, RosMsg};
 use crate::ros2::Ros2Options;
-use rollbase_control::ports::{BaseState, CommandEvent, CommandKind};
-use rollbase_control::record::CycleRecord;
+use rollbase_control::runtime::record::CycleRecord;
+use rollbase_control::service::ports::{BaseState, CommandEvent, CommandKind};
 use rollbase_control::types::MAX_WHEELS;
 use serde_json::Value;
 use std::collections::BTreeMap;
@@ -532,7 +532,7 @@ impl McapRecorder {
         ev: &CommandEvent,
         log_time_ns: u64,
     ) -> Result<(), RecordError> {
-        let legs_msg = |l: &rollbase_control::ports::LegTargets| msg::Float64MultiArray {
+        let legs_msg = |l: &rollbase_control::service::ports::LegTargets| msg::Float64MultiArray {
             layout: msg::MultiArrayLayout {
                 dim: vec![msg::MultiArrayDimension {
                     label: "legs".into(),
@@ -875,7 +875,7 @@ pub fn recover(input: &Path, out: &Path) -> Result<RecoverReport, RecordError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rollbase_control::record::FrameRecord;
+    use rollbase_control::runtime::record::FrameRecord;
 
     fn tmp(name: &str) -> std::path::PathBuf {
         let d = std::env::temp_dir().join(format!("rollbase-rec-{name}-{}", std::process::id()));
@@ -1070,7 +1070,7 @@ mod tests {
         }
         let ev = CommandEvent {
             t: 0.1,
-            kind: CommandKind::Motion(rollbase_control::ports::MotionCommand {
+            kind: CommandKind::Motion(rollbase_control::service::ports::MotionCommand {
                 twist: rollbase_control::types::Twist {
                     vx: 0.5,
                     vy: 0.25,
@@ -1083,9 +1083,9 @@ mod tests {
         rec.write_command(
             &CommandEvent {
                 t: 0.2,
-                kind: CommandKind::Legs(rollbase_control::ports::LegTargets::from_slice(&[
-                    0.4, 0.41, 0.42, 0.43,
-                ])),
+                kind: CommandKind::Legs(rollbase_control::service::ports::LegTargets::from_slice(
+                    &[0.4, 0.41, 0.42, 0.43],
+                )),
             },
             200_000_000,
         )

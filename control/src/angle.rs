@@ -38,7 +38,7 @@ pub struct SteerRange {
 
 impl SteerRange {
     /// The range of a wheel (`None` when it steers endlessly).
-    pub fn of(w: &crate::platform::WheelConfig) -> Option<Self> {
+    pub fn of(w: &crate::model::platform::WheelConfig) -> Option<Self> {
         w.steer_limits().map(|(min, max)| Self { min, max })
     }
 

@@ -8,28 +8,15 @@
 #![deny(missing_docs)]
 
 pub mod angle;
-pub mod avoidance;
-pub mod command;
-pub mod dfl;
-pub mod ideal_plant;
-pub mod kinematic;
-pub mod limits;
-pub mod link;
+pub mod estimation;
 pub mod model;
 pub mod num;
-pub mod odometry;
-pub mod platform;
-pub mod ports;
-pub mod ramp;
-pub mod record;
+pub mod reference;
 pub mod runtime;
-pub mod scenario;
-pub mod shaper;
+pub mod service;
 pub mod supervisor;
-pub mod timescale;
-pub mod trajectory;
+pub mod tracking;
 pub mod types;
-pub mod wmr;
 
-pub use platform::{ConfigError, Platform, Protocol};
+pub use model::platform::{ConfigError, Platform, Protocol};
 pub use types::*;

@@ -53,8 +53,8 @@
 //!
 //! The supervisor is pure: inputs in, decision out; time is the cycle index.
 
+use crate::model::platform::Platform;
 use crate::num::{Fixed3, Num};
-use crate::platform::Platform;
 use crate::types::{Command, MAX_WHEELS};
 use rollbase_driver::canopen::config::Role;
 use rollbase_driver::canopen::master::DeviceFault;
@@ -403,7 +403,7 @@ pub const FOLLOW_HISTORY: usize = 64;
 impl Default for SupervisorConfig {
     fn default() -> Self {
         Self {
-            stale_cycles: crate::platform::TOLERATED_LOST_CYCLES,
+            stale_cycles: crate::model::platform::TOLERATED_LOST_CYCLES,
             stale_data_cycles: 8,
             align_tolerance: 0.5f64.to_radians(),
             align_timeout_cycles: 2500,

@@ -106,7 +106,7 @@ pub struct ReferenceSample {
     /// z⃛*(t) (jerk), for controllers that differentiate the feedforward once more.
     pub dddz: ZVec,
     /// Steering reference for wheels whose reference contact speed is below
-    /// [`crate::limits::HOLD_SPEED`] (`valid = false`: the source gives none, and the
+    /// [`crate::reference::limits::HOLD_SPEED`] (`valid = false`: the source gives none, and the
     /// controllers steer such wheels as they always did).
     pub steer: SteerReference,
 }

@@ -1,7 +1,7 @@
 //! The seed-001 experiment (issue 6): avoidance off / legs locked / legs free, in lockstep
 //! on the ideal kinematic plant with the DFL controller (and the kinematic controller).
 
-use rollbase_control::avoidance::*;
+use rollbase_control::reference::avoidance::*;
 use rollbase_control::Platform;
 
 fn table_row(name: &str, r: &ExperimentResult) -> String {

@@ -17,7 +17,7 @@
 //!   largest real file, and parsing 1 MiB of TOML takes tens of milliseconds.
 //! - [`MAX_TRAJECTORY_BYTES`] = 8 MiB for waypoint files: one waypoint is about 90 bytes of
 //!   TOML, so 8 MiB holds about 90 000 waypoints — one every 0.4 s for the 10-hour limit on
-//!   trajectory times (`rollbase_control::trajectory::MAX_WAYPOINT_TIME_S`).
+//!   trajectory times (`rollbase_control::reference::trajectory::MAX_WAYPOINT_TIME_S`).
 //! - [`MAX_CANDUMP_LINE_BYTES`] = 4 KiB per `candump -L` line: the longest valid line (a CAN
 //!   FD frame with 64 data bytes, a 16-byte interface name, a 20-character timestamp and a
 //!   direction flag) is about 180 bytes. A candump log itself has no size cap: an hour of

@@ -29,7 +29,7 @@ pub const DEFAULT_NODES: [u8; 4] = [1, 2, 3, 4];
 /// The wheel modules' setpoint watchdog (s): a module that received no valid SETPOINT for
 /// this long stops its motors and latches `FAULT_WATCHDOG` (the protocol's safety rule; the
 /// simulated firmware's default). The control rate must leave room for lost SETPOINTs inside
-/// it (`rollbase_control::platform::MIN_CYCLE_HZ`).
+/// it (`rollbase_control::model::platform::MIN_CYCLE_HZ`).
 pub const SETPOINT_WATCHDOG_S: f64 = 0.050;
 
 /// Nominal bit rate of the bus, bit/s.

@@ -10,7 +10,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use rollbase_control::trajectory::{QuinticSpline, Trajectory};
+use rollbase_control::reference::trajectory::{QuinticSpline, Trajectory};
 use rollbase_control::Platform;
 
 fuzz_target!(|input: &[u8]| {

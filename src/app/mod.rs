@@ -52,8 +52,8 @@ pub(crate) use sinks::exit;
 use trajectory::{DemoArgs, RunArgs};
 
 use clap::{Args, Parser, Subcommand};
+use rollbase_control::runtime::scenario::{self, Scenario};
 use rollbase_control::runtime::RuntimeConfig;
-use rollbase_control::scenario::{self, Scenario};
 use rollbase_control::{Platform, Protocol};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};

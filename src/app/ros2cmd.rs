@@ -4,7 +4,7 @@
 use clap::Args;
 use rollbase::record::{McapRecorder, RecordOptions};
 use rollbase::ros2::{spawn_node, Ros2Args};
-use rollbase_control::ports::{BaseState, CommandEvent, CommandKind, ModuleDiagnostics};
+use rollbase_control::service::ports::{BaseState, CommandEvent, CommandKind, ModuleDiagnostics};
 use rollbase_control::supervisor::SupervisorState;
 use rollbase_control::types::MAX_WHEELS;
 use serde_json::json;

@@ -2,11 +2,11 @@
 //! the calling thread (a failed write stops the run in a controlled way), the in-process
 //! simulator of the demos, and the report.
 
-use rollbase_control::ports::{BaseState, CommandEvent};
-use rollbase_control::record::CycleRecord;
+use rollbase_control::runtime::record::CycleRecord;
 use rollbase_control::runtime::{
     run_realtime_io, CycleCore, RealtimeIo, RealtimeOptions, RealtimeReport,
 };
+use rollbase_control::service::ports::{BaseState, CommandEvent};
 use rollbase_driver::bus::CanBus;
 use rollbase_vcan_sim::Simulator;
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -14,9 +14,9 @@
 use clap::Args;
 use rollbase::commands::{self, TimedCommand};
 use rollbase::ros2::{spawn_node, Ros2Args, Ros2Options};
-use rollbase_control::ports::{BaseState, CommandEvent, CommandKind};
-use rollbase_control::record::CycleRecord;
+use rollbase_control::runtime::record::CycleRecord;
 use rollbase_control::runtime::{CycleCore, RuntimeConfig};
+use rollbase_control::service::ports::{BaseState, CommandEvent, CommandKind};
 use rollbase_control::supervisor::SupervisorState;
 use rollbase_control::Platform;
 use rollbase_driver::bus::{self as bus, CanBus};
@@ -285,7 +285,7 @@ pub(crate) struct StatusLog {
     state: Option<SupervisorState>,
     timeouts: u64,
     rejected: u64,
-    limiting: rollbase_control::ports::Limiting,
+    limiting: rollbase_control::service::ports::Limiting,
     last_limit_log: Option<Instant>,
 }
 
@@ -322,7 +322,7 @@ impl StatusLog {
             }
             self.rejected = c.rejected;
         }
-        use rollbase_control::ports::Limiting;
+        use rollbase_control::service::ports::Limiting;
         let l = r.shaping.limiting;
         if l != self.limiting {
             let quiet_for = self

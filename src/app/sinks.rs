@@ -21,7 +21,7 @@
 //!   itself fails (the disk fills while the index is written): the temporary file is kept.
 
 use rollbase::record::{McapRecorder, RecordOptions};
-use rollbase_control::record::CycleRecord;
+use rollbase_control::runtime::record::CycleRecord;
 use rollbase_control::runtime::RunSummary;
 use rollbase_driver::candump::{CandumpWriter, LogEntry};
 use rollbase_driver::frame::CanFrame;
@@ -391,7 +391,7 @@ impl Sinks {
         }
         if let Some(o) = &mut self.candump {
             // Frames in bus order: SYNC first, then what was received, then the setpoints.
-            let mut frames: Vec<(f64, &rollbase_control::record::FrameRecord)> =
+            let mut frames: Vec<(f64, &rollbase_control::runtime::record::FrameRecord)> =
                 Vec::with_capacity(r.n_rx + r.n_tx);
             frames.extend(r.tx[..r.n_tx].iter().map(|f| (f.t, f)));
             frames.extend(r.rx[..r.n_rx].iter().map(|f| (f.t, f)));

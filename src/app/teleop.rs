@@ -24,7 +24,9 @@
 //! log line clears the status line first ([`log_writer`]), the status line is drawn again
 //! below it, and the last status line is ended with a newline before the run's report.
 
-use rollbase_control::ports::{BaseState, CommandEvent, CommandKind, LegTargets, MotionCommand};
+use rollbase_control::service::ports::{
+    BaseState, CommandEvent, CommandKind, LegTargets, MotionCommand,
+};
 use rollbase_control::types::Twist;
 use rollbase_control::Platform;
 use std::io::{IsTerminal, Read, Write};
@@ -337,7 +339,7 @@ pub(crate) fn status_line() -> super::service::StateConsumer {
         last = Instant::now();
         STATUS_SHOWN.store(true, Ordering::Relaxed);
         let o = &s.odometry;
-        use rollbase_control::ports::Limiting;
+        use rollbase_control::service::ports::Limiting;
         let limit = match s.shaping.limiting {
             Limiting::None => String::new(),
             l @ (Limiting::Timeout | Limiting::Stop) => format!("  halting: {}", l.name()),

@@ -1,9 +1,9 @@
 //! `demo` and `run`: follow a trajectory (a scenario or a waypoint file) to its end.
 
 use clap::Args;
-use rollbase_control::record::CycleRecord;
+use rollbase_control::runtime::record::CycleRecord;
+use rollbase_control::runtime::scenario::{self, Scenario};
 use rollbase_control::runtime::{run_lockstep_with, CycleCore, VirtualLockstepBus};
-use rollbase_control::scenario::{self, Scenario};
 use rollbase_driver::bus::{self as bus, CanBus};
 use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};
 use std::collections::BTreeMap;
@@ -81,9 +81,9 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
     a.ros2.options(platform.n())?; // refuses --ros2-* options without --ros2
     let (traj, sc, name) = match &a.trajectory {
         Some(file) => {
-            let t = rollbase_control::trajectory::load_waypoints(&platform, file)
+            let t = rollbase_control::reference::trajectory::load_waypoints(&platform, file)
                 .map_err(scenario::ScenarioError::from)?;
-            let t: Box<dyn rollbase_control::trajectory::Trajectory> = Box::new(t);
+            let t: Box<dyn rollbase_control::reference::trajectory::Trajectory> = Box::new(t);
             (t, None, "trajectory".to_string())
         }
         None => {
@@ -165,7 +165,7 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
 fn timing_text(core: &CycleCore, duration: f64) -> String {
     match core.trajectory_timing() {
         Some(t) if t.executed_duration_s != t.nominal_duration_s => {
-            let why = if t.limiting == rollbase_control::ports::Limiting::None {
+            let why = if t.limiting == rollbase_control::service::ports::Limiting::None {
                 String::new()
             } else {
                 format!(" (wheel {} {})", t.wheel + 1, t.limiting.name())
@@ -220,7 +220,7 @@ pub(crate) fn run_demo_lockstep(
     mut sim: Simulator,
     sinks: &mut Sinks,
     stop: &AtomicBool,
-    commands: &[rollbase_control::ports::CommandEvent],
+    commands: &[rollbase_control::service::ports::CommandEvent],
     max_cycles: u64,
     seed: u64,
     quiet: bool,
@@ -285,7 +285,8 @@ pub(crate) fn run_demo_realtime(
                 let frac = (t / duration.max(1e-9)).clamp(0.0, 1.0);
                 let bars = (frac * 30.0) as usize;
                 // The time scaling slows the trajectory where an actuator needs it: say so.
-                let slowing = if r.shaping.limiting != rollbase_control::ports::Limiting::None
+                let slowing = if r.shaping.limiting
+                    != rollbase_control::service::ports::Limiting::None
                     && r.shaping.scale < 0.995
                 {
                     format!(

@@ -24,7 +24,7 @@ use super::msg::{
     PoseWithCovariance, Quaternion, StringMsg, TFMessage, Transform, TransformStamped, Twist,
     TwistWithCovariance, Vector3,
 };
-use rollbase_control::ports::{BaseState, CommandKind, LegTargets, MotionCommand};
+use rollbase_control::service::ports::{BaseState, CommandKind, LegTargets, MotionCommand};
 use rollbase_control::supervisor::SupervisorState;
 use rollbase_control::types::{Twist as BodyTwist, MAX_WHEELS};
 
@@ -155,7 +155,7 @@ impl JointNames {
 }
 
 /// `sensor_msgs/JointState` of a state with the given names (3 per wheel, see [`JointNames`]).
-/// A wheel without a leg ([`rollbase_control::ports::JointState::no_leg`]) has no leg joint:
+/// A wheel without a leg ([`rollbase_control::service::ports::JointState::no_leg`]) has no leg joint:
 /// its steer and drive joints only (its leg name is not used).
 pub fn joint_state(s: &BaseState, names: &[String]) -> JointState {
     let n = s.n.min(MAX_WHEELS);
@@ -187,7 +187,7 @@ pub fn supervisor_text(s: &BaseState) -> StringMsg {
     if let Some(r) = s.reason {
         data.push_str(&format!(": {r}"));
     }
-    use rollbase_control::ports::Limiting;
+    use rollbase_control::service::ports::Limiting;
     match s.shaping.limiting {
         Limiting::None => {}
         l @ (Limiting::Timeout | Limiting::Stop) => {
@@ -338,7 +338,10 @@ impl DiagnosticsBuilder {
         let limiting = s.shaping.limiting;
         let level = if s.state == SupervisorState::Fault {
             DiagnosticStatus::ERROR
-        } else if d_rej > 0 || d_to > 0 || limiting == rollbase_control::ports::Limiting::Timeout {
+        } else if d_rej > 0
+            || d_to > 0
+            || limiting == rollbase_control::service::ports::Limiting::Timeout
+        {
             DiagnosticStatus::WARN
         } else {
             DiagnosticStatus::OK
@@ -545,7 +548,7 @@ pub fn legs_command(data: &[f64]) -> CommandKind {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rollbase_control::ports::{Limiting, ModuleDiagnostics};
+    use rollbase_control::service::ports::{Limiting, ModuleDiagnostics};
     use rollbase_control::types::Pose as BodyPose;
 
     fn state() -> BaseState {

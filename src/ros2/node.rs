@@ -34,7 +34,7 @@ use super::params;
 use super::service::{self, RequestMeta};
 use super::{Ros2Error, Ros2Options, ServiceMapping};
 use futures::{FutureExt, StreamExt};
-use rollbase_control::ports::{BaseState, CommandEvent, CommandKind};
+use rollbase_control::service::ports::{BaseState, CommandEvent, CommandKind};
 use rustdds::{
     DomainParticipantStatusEvent, QosPolicies, RTPSEntity, SampleIdentity, SequenceNumber,
     StatusEvented, Timestamp, WriteOptionsBuilder, GUID,

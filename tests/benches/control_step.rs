@@ -9,15 +9,15 @@
 //! `benches/report.sh`).
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use rollbase_control::avoidance::{Avoidance, AvoidanceConfig};
-use rollbase_control::dfl::{
+use rollbase_control::estimation::odometry::{Odometry, OdometryOutput};
+use rollbase_control::model::ideal_plant::IdealPlant;
+use rollbase_control::reference::avoidance::{Avoidance, AvoidanceConfig};
+use rollbase_control::reference::trajectory::Trajectory;
+use rollbase_control::runtime::scenario::{self, Scenario};
+use rollbase_control::tracking::dfl::{
     alignment_command, ControlInput, ControlOutput, DflController, TrackingController,
 };
-use rollbase_control::ideal_plant::IdealPlant;
-use rollbase_control::kinematic::KinematicController;
-use rollbase_control::odometry::{Odometry, OdometryOutput};
-use rollbase_control::scenario::{self, Scenario};
-use rollbase_control::trajectory::Trajectory;
+use rollbase_control::tracking::kinematic::KinematicController;
 use rollbase_control::{Measurement, Platform, ReferenceSample};
 use rollbase_tests::alloc_count::{allocations, reset, set_counting, CountingAlloc};
 use std::hint::black_box;

@@ -8,11 +8,11 @@
 //! whole scenario (line `ALLOCS cycle_core/... <allocations> <cycles>` on stdout).
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use rollbase_control::avoidance::AvoidanceConfig;
+use rollbase_control::reference::avoidance::AvoidanceConfig;
+use rollbase_control::runtime::scenario::{self, Scenario};
 use rollbase_control::runtime::{
     lockstep_cycle, CycleCore, LockstepState, StepHooks, VirtualLockstepBus,
 };
-use rollbase_control::scenario::{self, Scenario};
 use rollbase_control::Platform;
 use rollbase_driver::fault::FaultModel;
 use rollbase_tests::alloc_count::{allocations, reset, set_counting, CountingAlloc};

@@ -18,10 +18,10 @@
 //! before the run), so its allocations are printed for the record only.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use rollbase_control::ports::CommandKind;
-use rollbase_control::shaper::Shaper;
-use rollbase_control::timescale::{ScaledTrajectory, TimeScaleConfig};
-use rollbase_control::trajectory::{QuinticSpline, Trajectory};
+use rollbase_control::reference::shaper::Shaper;
+use rollbase_control::reference::timescale::{ScaledTrajectory, TimeScaleConfig};
+use rollbase_control::reference::trajectory::{QuinticSpline, Trajectory};
+use rollbase_control::service::ports::CommandKind;
 use rollbase_control::types::{Pose, Twist};
 use rollbase_control::Platform;
 use rollbase_tests::alloc_count::{allocations, reset, set_counting, CountingAlloc};

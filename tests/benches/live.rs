@@ -1,7 +1,7 @@
 //! The base service's (`rollbase drive`'s) per-cycle control work on a live command session:
 //! singularity avoidance on the command and the shaper (live command → reference within
 //! every actuator limit; `CycleCore` runs the avoidance before the shaper for live commands,
-//! [`rollbase_control::avoidance`], "Live commands"), and the tracking controller (DFL while the reference moves, the
+//! [`rollbase_control::reference::avoidance`], "Live commands"), and the tracking controller (DFL while the reference moves, the
 //! kinematic controller near rest, switched with hysteresis as `CycleCore` does for live
 //! commands).
 //!
@@ -27,18 +27,18 @@
 //! <max ns> <steps>` (each step between two `Instant` readings, which add a few tens of ns).
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use rollbase_control::avoidance::AvoidanceConfig;
-use rollbase_control::dfl::{ControlInput, ControlOutput, DflController};
-use rollbase_control::ideal_plant::IdealPlant;
-use rollbase_control::kinematic::KinematicController;
-use rollbase_control::odometry::{Odometry, OdometryOutput};
-use rollbase_control::ports::{CommandEvent, CommandKind, LegTargets, MotionCommand};
+use rollbase_control::estimation::odometry::{Odometry, OdometryOutput};
+use rollbase_control::model::ideal_plant::IdealPlant;
+use rollbase_control::reference::avoidance::AvoidanceConfig;
+use rollbase_control::reference::shaper::Shaper;
 use rollbase_control::runtime::{
     lockstep_cycle, CycleCore, LockstepState, RuntimeConfig, StepHooks, VirtualLockstepBus,
     DFL_ENTRY_SPEED,
 };
-use rollbase_control::shaper::Shaper;
+use rollbase_control::service::ports::{CommandEvent, CommandKind, LegTargets, MotionCommand};
 use rollbase_control::supervisor::SupervisorState;
+use rollbase_control::tracking::dfl::{ControlInput, ControlOutput, DflController};
+use rollbase_control::tracking::kinematic::KinematicController;
 use rollbase_control::types::{Pose, Twist};
 use rollbase_control::{Measurement, Platform, ReferenceSample};
 use rollbase_driver::fault::FaultModel;
@@ -171,11 +171,11 @@ impl LiveStack {
         // The DFL tracks while the reference moves, the kinematic controller near rest.
         let mut v_ref = 0.0f64;
         for i in 0..p.n() {
-            let u = rollbase_control::limits::contact_kinematics(p, i, &reference)[0];
+            let u = rollbase_control::reference::limits::contact_kinematics(p, i, &reference)[0];
             v_ref = v_ref.max(u[0].hypot(u[1]));
         }
         let entry = if self.dfl_active {
-            rollbase_control::dfl::EPSILON
+            rollbase_control::tracking::dfl::EPSILON
         } else {
             DFL_ENTRY_SPEED
         };

@@ -6,8 +6,8 @@
 //! (`ideal`: simulator without noise, quantization or encoder latency).
 
 use rollbase_control::angle;
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::ControllerKind;
-use rollbase_control::scenario::Scenario;
 use rollbase_tests::{run, RunOptions};
 
 fn main() {

@@ -2,7 +2,7 @@
 //! `cargo run --release -p rollbase-tests --example random_session -- SEED0 SEED1 VMAX WMAX P_LEGS`
 //! prints each seed's tracking figures; `WIN=t0,t1` dumps every wheel between two times and `CSV=1`
 //! writes a per-cycle CSV to stderr. Used to look for weak spots of the shaper.
-use rollbase_control::ports::{CommandEvent, CommandKind, LegTargets, MotionCommand};
+use rollbase_control::service::ports::{CommandEvent, CommandKind, LegTargets, MotionCommand};
 use rollbase_control::types::Twist;
 use rollbase_tests::*;
 
@@ -96,7 +96,7 @@ pub fn dump_at(out: &RunOutcome, t0: f64, t1: f64) {
         let p = &out.platform;
         let mut s = format!("{:.3} {}", r.t, r.mode);
         for i in 0..4 {
-            let d = rollbase_control::limits::wheel_demand(p, i, &r.reference);
+            let d = rollbase_control::reference::limits::wheel_demand(p, i, &r.reference);
             s += &format!(
                 " | w{i} L={:.4}/{:.4} u={:.3} st={:.3}/{:.3} cmd=({:.2},{:.2}) meas=({:.2},{:.3})",
                 r.reference.z[3 + i],

@@ -12,11 +12,11 @@
 //! Each case is a function returning a [`CaseResult`]; `quick = true` shortens the runs so the
 //! debug-mode tests stay fast (the assertions are the same).
 
-use rollbase_control::record::CycleRecord;
+use rollbase_control::runtime::record::CycleRecord;
+use rollbase_control::runtime::scenario::{self, Scenario};
 use rollbase_control::runtime::{
     lockstep_cycle, CycleCore, LockstepState, RuntimeConfig, VirtualLockstepBus,
 };
-use rollbase_control::scenario::{self, Scenario};
 use rollbase_control::supervisor::{FaultReason, SupervisorState};
 use rollbase_control::{Platform, MAX_WHEELS};
 use rollbase_driver::codec::{decode, encode, Payload};
@@ -1004,7 +1004,7 @@ pub fn modules_bus_off() -> CaseResult {
 
 /// Bad input from files: every error names the field or value; nothing is started.
 pub fn bad_input() -> CaseResult {
-    use rollbase_control::trajectory::QuinticSpline;
+    use rollbase_control::reference::trajectory::QuinticSpline;
     let mut c = CaseResult::new(
         "bad input: malformed platform TOML, NaN waypoint, unreachable leg, infeasible limits",
         "validated before anything starts; the error names the field and value; the CLI exits non-zero (cli-tests: bad_platform_file_names_the_field_and_fails, unknown_scenario_and_bus_are_clear_errors)",
@@ -1103,7 +1103,7 @@ pub fn memory_kb() -> Option<(u64, u64)> {
 /// A looping waypoint trajectory of `segments` 10-s segments: the platform visits the
 /// corners of a 1 m square while turning 1 rad per segment (never at rest in between, so the
 /// DFL never meets singularity A) and alternately extends and retracts its legs.
-pub fn soak_waypoints(segments: usize) -> Vec<rollbase_control::trajectory::Waypoint> {
+pub fn soak_waypoints(segments: usize) -> Vec<rollbase_control::reference::trajectory::Waypoint> {
     let corners = [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)];
     (0..=segments)
         .map(|k| {
@@ -1115,7 +1115,7 @@ pub fn soak_waypoints(segments: usize) -> Vec<rollbase_control::trajectory::Wayp
             for i in 0..4 {
                 z[3 + i] = if k % 2 == 0 { 0.45 } else { 0.50 };
             }
-            rollbase_control::trajectory::Waypoint {
+            rollbase_control::reference::trajectory::Waypoint {
                 t: 10.0 * k as f64,
                 z,
             }

@@ -70,14 +70,14 @@
 //! [`slow_clock`], [`limit_violations`]; and on command streams [`ideal_path_length`].
 
 use crate::{build_live, LiveOptions, RunOptions, RunOutcome};
-use rollbase_control::limits::Violation;
-use rollbase_control::ports::{CommandEvent, CommandKind, Limiting, MotionCommand};
-use rollbase_control::record::CycleRecord;
+use rollbase_control::reference::limits::Violation;
+use rollbase_control::reference::timescale::{ScaledTrajectory, TimeScaleConfig};
+use rollbase_control::reference::trajectory::{QuinticSpline, Trajectory, WaypointSpec};
+use rollbase_control::runtime::record::CycleRecord;
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::{lockstep_cycle, LockstepState, RunSummary, StepHooks};
-use rollbase_control::scenario::Scenario;
+use rollbase_control::service::ports::{CommandEvent, CommandKind, Limiting, MotionCommand};
 use rollbase_control::supervisor::SupervisorState;
-use rollbase_control::timescale::{ScaledTrajectory, TimeScaleConfig};
-use rollbase_control::trajectory::{QuinticSpline, Trajectory, WaypointSpec};
 use rollbase_control::types::{Pose, Twist};
 use rollbase_control::{Platform, Protocol, ZVec};
 use rollbase_driver::rng::Rng;
@@ -597,7 +597,8 @@ pub fn nav2_open_loop(path: &Path, style: FollowerStyle) -> Nav2Session {
     while let Some(kind) = stream.next(pose) {
         let t = (stream.tick - 1) as f64 / NAV2_HZ;
         if let CommandKind::Motion(m) = kind {
-            pose = rollbase_control::model::se2_integrate(pose, &m.twist, 1.0 / NAV2_HZ);
+            pose =
+                rollbase_control::model::kinematics::se2_integrate(pose, &m.twist, 1.0 / NAV2_HZ);
         }
         commands.push(CommandEvent { t, kind });
     }
@@ -740,7 +741,7 @@ pub fn icr_sweep(k: usize, omega: f64, span: f64, secs: f64) -> Vec<WaypointSpec
             vy: -omega * icr[0],
             omega,
         };
-        pose = rollbase_control::model::se2_integrate(pose, &tw, dt);
+        pose = rollbase_control::model::kinematics::se2_integrate(pose, &tw, dt);
         if (q + 1) % 250 == 0 || q + 1 == steps {
             out.push(wp(
                 (q + 1) as f64 * dt,
@@ -1054,7 +1055,7 @@ pub fn waypoint_tour(seed: u64, m: usize) -> Vec<WaypointSpec> {
 // Planned timing (the lead's additions to timescale.rs, through one adapter)
 // ---------------------------------------------------------------------------------------
 
-/// What a plan says about its own timing beyond [`rollbase_control::timescale::Timing`].
+/// What a plan says about its own timing beyond [`rollbase_control::reference::timescale::Timing`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct PlanTiming {
     /// The plan's executed duration (s).
@@ -1069,7 +1070,7 @@ pub struct PlanTiming {
 }
 
 /// The plan's timing: its executed duration, the time-optimal timing of the path's motions
-/// ([`rollbase_control::timescale::Timing::optimal_duration_s`]: the passes' timing before the
+/// ([`rollbase_control::reference::timescale::Timing::optimal_duration_s`]: the passes' timing before the
 /// jerk smoothing), the dwells in all and each dwell's executed-time interval
 /// ([`ScaledTrajectory::dwells`]).
 pub fn plan_timing(plan: &ScaledTrajectory) -> PlanTiming {
@@ -1138,12 +1139,12 @@ pub fn steering_reversals(records: &[CycleRecord], wheel: usize) -> usize {
 /// ideal follower of `cmds` on `p` — each wheel pointing along its contact velocity for each
 /// motion command's twist (legs at their nominal extension, on the branch nearest its last
 /// angle), its rate the change between two consecutive commands over their interval; wheels
-/// slower than [`rollbase_control::limits::HOLD_SPEED`] in either command are skipped (their
+/// slower than [`rollbase_control::reference::limits::HOLD_SPEED`] in either command are skipped (their
 /// direction means nothing). A session's stick that moves to a new random twist about 1.5
 /// times a second asks for about one reversal per wheel per 2 s by itself; what a run does
 /// beyond that is the shaper's (or the noise's) own.
 pub fn command_reversals(cmds: &[CommandEvent], p: &Platform) -> [usize; 4] {
-    let hold = rollbase_control::limits::HOLD_SPEED;
+    let hold = rollbase_control::reference::limits::HOLD_SPEED;
     let dir = |t: &Twist, i: usize| -> Option<f64> {
         let w = p.wheels.get(i)?;
         let (sa, ca) = w.alpha.sin_cos();
@@ -1339,7 +1340,7 @@ pub fn slow_clock(samples: &[(f64, f64)], dwells: &[(f64, f64)], dt: f64) -> Slo
 }
 
 /// Limit violations of one kind at one hand-over: every consecutive pair of commands whose
-/// check ([`rollbase_control::limits::check_command`]) fails, grouped by (mode of the earlier
+/// check ([`rollbase_control::reference::limits::check_command`]) fails, grouped by (mode of the earlier
 /// command, mode of the later one, what was exceeded).
 #[derive(Clone, Debug, PartialEq)]
 pub struct ModeViolations {
@@ -1374,7 +1375,7 @@ impl fmt::Display for ModeViolations {
 pub fn limit_violations(records: &[CycleRecord], p: &Platform) -> Vec<ModeViolations> {
     let mut out: Vec<ModeViolations> = Vec::new();
     for w in records.windows(2) {
-        let Some(v) = rollbase_control::limits::check_command(
+        let Some(v) = rollbase_control::reference::limits::check_command(
             &p.limits,
             &w[0].command,
             &w[1].command,
@@ -1596,7 +1597,7 @@ pub struct WaypointRunOptions {
     /// Wire profile.
     pub profile: Protocol,
     /// `--avoidance` (`None`: off).
-    pub avoidance: Option<rollbase_control::avoidance::AvoidanceConfig>,
+    pub avoidance: Option<rollbase_control::reference::avoidance::AvoidanceConfig>,
     /// Simulator seed.
     pub seed: u64,
 }
@@ -1625,8 +1626,12 @@ pub fn run_waypoints(
     // With the avoidance on, the runtime scales the path the avoidance made before the run.
     let path: Box<dyn Trajectory> = match o.avoidance.filter(|a| a.enabled) {
         Some(a) => Box::new(
-            rollbase_control::avoidance::AvoidedTrajectory::plan(&platform, Box::new(spline), a)
-                .map_err(|e| e.to_string())?,
+            rollbase_control::reference::avoidance::AvoidedTrajectory::plan(
+                &platform,
+                Box::new(spline),
+                a,
+            )
+            .map_err(|e| e.to_string())?,
         ),
         None => Box::new(spline),
     };

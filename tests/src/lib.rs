@@ -6,12 +6,12 @@ pub mod alloc_count;
 pub mod campaign;
 pub mod flow;
 
-use rollbase_control::record::CycleRecord;
+use rollbase_control::runtime::record::CycleRecord;
+use rollbase_control::runtime::scenario::{self, Scenario};
 use rollbase_control::runtime::{
     run_lockstep, ControllerKind, CycleCore, LockstepReport, RunSummary, RuntimeConfig,
     VirtualLockstepBus,
 };
-use rollbase_control::scenario::{self, Scenario};
 use rollbase_control::{Platform, Protocol};
 use rollbase_driver::fault::FaultModel;
 use rollbase_vcan_sim::{FaultSchedule, PlantConfig, SimConfig, Simulator};
@@ -43,10 +43,10 @@ pub struct RunOptions {
     /// `lambda_max`).
     pub sim_platform: Option<Platform>,
     /// Waypoints of a quintic-spline trajectory used instead of the scenario's.
-    pub waypoints: Option<Vec<rollbase_control::trajectory::Waypoint>>,
+    pub waypoints: Option<Vec<rollbase_control::reference::trajectory::Waypoint>>,
     /// Waypoints whose times may be left open (time-scaled by the runtime), used instead of
     /// the scenario's and of `waypoints`.
-    pub waypoint_specs: Option<Vec<rollbase_control::trajectory::WaypointSpec>>,
+    pub waypoint_specs: Option<Vec<rollbase_control::reference::trajectory::WaypointSpec>>,
     /// Give up after this many seconds of platform time (`None`: the trajectory's duration
     /// plus `slack_s`, which never ends for a plan that does not).
     pub max_seconds: Option<f64>,
@@ -114,10 +114,10 @@ pub struct RunOutcome {
     /// last cycle (nobody listening): what a controller that exits leaves on the bus.
     pub after_end: Vec<rollbase_driver::frame::CanFrame>,
     /// The state port's value after the last cycle (live runs).
-    pub final_state: Option<rollbase_control::ports::BaseState>,
+    pub final_state: Option<rollbase_control::service::ports::BaseState>,
     /// The timing of a time-scaled trajectory as the core planned it (`None` for live
     /// commands or an unscaled trajectory).
-    pub timing: Option<rollbase_control::timescale::Timing>,
+    pub timing: Option<rollbase_control::reference::timescale::Timing>,
 }
 
 /// Simulated time the devices run on after the controller's last cycle.
@@ -128,14 +128,14 @@ pub const AFTER_END: std::time::Duration = std::time::Duration::from_millis(500)
 pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstepBus, f64), String> {
     let mut platform = opts.platform.clone().unwrap_or_else(Platform::justin);
     platform.protocol = opts.profile;
-    let traj: Box<dyn rollbase_control::trajectory::Trajectory> =
+    let traj: Box<dyn rollbase_control::reference::trajectory::Trajectory> =
         match (&opts.waypoint_specs, &opts.waypoints) {
             (Some(w), _) => Box::new(
-                rollbase_control::trajectory::QuinticSpline::from_specs(&platform, w)
+                rollbase_control::reference::trajectory::QuinticSpline::from_specs(&platform, w)
                     .map_err(|e| e.to_string())?,
             ),
             (None, Some(w)) => Box::new(
-                rollbase_control::trajectory::QuinticSpline::new(&platform, w)
+                rollbase_control::reference::trajectory::QuinticSpline::new(&platform, w)
                     .map_err(|e| e.to_string())?,
             ),
             (None, None) => {
@@ -366,7 +366,7 @@ pub fn build_live(opts: &LiveOptions) -> (CycleCore, Simulator, VirtualLockstepB
 /// simulator's truth, relative to the shaped reference.
 pub fn run_live(
     opts: &LiveOptions,
-    commands: &[rollbase_control::ports::CommandEvent],
+    commands: &[rollbase_control::service::ports::CommandEvent],
 ) -> RunOutcome {
     let (mut core, mut sim, mut bus) = build_live(opts);
     let platform = core.platform().clone();
@@ -397,8 +397,13 @@ pub fn run_live(
 }
 
 /// A twist command event at `t` (s after the driver is ready).
-pub fn twist_at(t: f64, vx: f64, vy: f64, omega: f64) -> rollbase_control::ports::CommandEvent {
-    use rollbase_control::ports::{CommandEvent, CommandKind, MotionCommand};
+pub fn twist_at(
+    t: f64,
+    vx: f64,
+    vy: f64,
+    omega: f64,
+) -> rollbase_control::service::ports::CommandEvent {
+    use rollbase_control::service::ports::{CommandEvent, CommandKind, MotionCommand};
     CommandEvent {
         t,
         kind: CommandKind::Motion(MotionCommand {
@@ -409,15 +414,18 @@ pub fn twist_at(t: f64, vx: f64, vy: f64, omega: f64) -> rollbase_control::ports
 }
 
 /// Asserts that every command sent on every cycle keeps every actuator within its speed and
-/// acceleration limit ([`rollbase_control::limits::check_command`]): every consecutive pair
+/// acceleration limit ([`rollbase_control::reference::limits::check_command`]): every consecutive pair
 /// of commands, in every mode and across every hand-over between modes (align, track, halt,
 /// hold, decelerate, disable), fault stops included; no mode is exempt (issue 23).
 pub fn assert_commands_within_limits(out: &RunOutcome) {
     let p = &out.platform;
     for w in out.records.windows(2) {
-        if let Some(v) =
-            rollbase_control::limits::check_command(&p.limits, &w[0].command, &w[1].command, p.dt())
-        {
+        if let Some(v) = rollbase_control::reference::limits::check_command(
+            &p.limits,
+            &w[0].command,
+            &w[1].command,
+            p.dt(),
+        ) {
             panic!(
                 "cycle {} ({} after {}): {v}",
                 w[1].cycle, w[1].mode, w[0].mode

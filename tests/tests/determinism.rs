@@ -1,7 +1,7 @@
 //! Determinism: the same seed gives byte-identical MCAP message payloads.
 
 use rollbase::record::{read_recording, McapRecorder};
-use rollbase_control::scenario::Scenario;
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_tests::{run_with, RunOptions};
 use std::collections::BTreeMap;
 

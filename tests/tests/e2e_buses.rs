@@ -2,8 +2,8 @@
 //! bus on its own virtual medium with its own SYNC, both wire profiles; the bus load per
 //! bus; one bus lost → a controlled stop of the whole base.
 
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::ControllerKind;
-use rollbase_control::scenario::Scenario;
 use rollbase_control::{Platform, Protocol};
 use rollbase_tests::{
     assert_commands_within_limits, assert_controlled_stop_from, assert_tracking_bounds, run_buses,

@@ -3,11 +3,11 @@
 //! full frame path (SDO, NMT, SYNC, PDOs, heartbeats, EMCY), with the simulator's frames
 //! serialized on a 1 Mbit/s bus.
 
-use rollbase_control::record::CycleRecord;
+use rollbase_control::reference::trajectory::Waypoint;
+use rollbase_control::runtime::record::CycleRecord;
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::{lockstep_cycle, LockstepState, StepHooks};
-use rollbase_control::scenario::Scenario;
 use rollbase_control::supervisor::{FaultReason, SupervisorState};
-use rollbase_control::trajectory::Waypoint;
 use rollbase_control::{Platform, ZVec};
 use rollbase_driver::canopen::config::Role;
 use rollbase_driver::canopen::master::{BootError, DeviceFault};
@@ -26,7 +26,7 @@ fn first_fault(out: &RunOutcome) -> &CycleRecord {
         .expect("the supervisor faulted")
 }
 
-fn frame(f: &rollbase_control::record::FrameRecord) -> CanFrame {
+fn frame(f: &rollbase_control::runtime::record::FrameRecord) -> CanFrame {
     CanFrame::new(f.id, &f.data[..usize::from(f.len)]).expect("recorded frames are valid")
 }
 

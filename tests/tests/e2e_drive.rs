@@ -2,8 +2,8 @@
 //! simulated wheel modules and plant → bus → decode): live commands, the shaper, the command
 //! port and the state port. Errors are the simulator's truth against the shaped reference.
 
-use rollbase_control::ports::{CommandEvent, CommandKind, LegTargets, MotionCommand};
-use rollbase_control::record::CycleRecord;
+use rollbase_control::runtime::record::CycleRecord;
+use rollbase_control::service::ports::{CommandEvent, CommandKind, LegTargets, MotionCommand};
 use rollbase_control::supervisor::SupervisorState;
 use rollbase_control::types::Twist;
 use rollbase_tests::*;
@@ -227,7 +227,8 @@ fn an_icr_sweeping_across_a_wheel_does_not_make_it_chatter() {
     // wheel). The wheel itself need not turn: its roll reverses where its velocity passes
     // through zero on a line.
     let dir = |r: &CycleRecord| {
-        rollbase_control::limits::wheel_demand(&out.platform, 0, &r.reference).steer_angle
+        rollbase_control::reference::limits::wheel_demand(&out.platform, 0, &r.reference)
+            .steer_angle
     };
     let turned = rollbase_control::angle::diff(
         dir(moving.last().expect("moving")),
@@ -251,11 +252,11 @@ fn chatter_once_rolling(out: &RunOutcome, wheel: usize) -> usize {
         .position(|rec| (rec.command.wheels[wheel].wheel_speed * r).abs() > 0.02)
         .unwrap_or(out.records.len());
     // The stretches where the shaper stopped the platform to re-align its wheels (align-first
-    // in the middle of the run, module docs of rollbase_control::shaper, "Transitions") are a
+    // in the middle of the run, module docs of rollbase_control::reference::shaper, "Transitions") are a
     // deliberate re-steer at rest, like the alignment from rest at the start: counted apart.
     let mut count = 0;
     for part in out.records[first..]
-        .split(|rec| rec.shaping.limiting == rollbase_control::ports::Limiting::Aligning)
+        .split(|rec| rec.shaping.limiting == rollbase_control::service::ports::Limiting::Aligning)
     {
         count += steering_chatter(part, r, wheel);
     }
@@ -307,7 +308,8 @@ fn an_icr_sweeping_beside_a_wheel_turns_it_without_reversal_once_rolling() {
             .collect();
         // The ICR went past: the wheel's direction of travel in the reference turned.
         let dir = |r: &CycleRecord| {
-            rollbase_control::limits::wheel_demand(&out.platform, 0, &r.reference).steer_angle
+            rollbase_control::reference::limits::wheel_demand(&out.platform, 0, &r.reference)
+                .steer_angle
         };
         let turned = rollbase_control::angle::diff(
             dir(moving.last().expect("moving")),
@@ -352,7 +354,7 @@ fn the_timeout_stops_within_the_deceleration_limit_and_the_next_command_resumes(
     let recs = &out.records;
     let k0 = recs
         .iter()
-        .position(|r| r.shaping.limiting == rollbase_control::ports::Limiting::Timeout)
+        .position(|r| r.shaping.limiting == rollbase_control::service::ports::Limiting::Timeout)
         .expect("a timeout");
     let before = &recs[k0 - 1];
     let p = &out.platform;
@@ -551,7 +553,7 @@ fn odometry_over_a_random_60_s_session_stays_within_its_reported_uncertainty() {
 
 /// Seed 001's avoidance on live commands (legs locked, as with live leg commands, and legs
 /// free), for the pivot and the sweep above and the commands far beyond every limit. The
-/// avoidance acts on the command before the shaper (`rollbase_control::avoidance`, "Live
+/// avoidance acts on the command before the shaper (`rollbase_control::reference::avoidance`, "Live
 /// commands"), so the reference the controller follows is shaped as any other: every command
 /// sent within its limits, the errors against that reference within the issue's bounds, the
 /// wheel the ICR rests on or crosses neither chatters nor flips, the run ends stopped.
@@ -563,11 +565,12 @@ fn odometry_over_a_random_60_s_session_stays_within_its_reported_uncertainty() {
 #[test]
 fn with_avoidance_on_the_pivot_and_the_sweep_do_not_chatter_and_stay_within_the_limits() {
     let p = rollbase_control::Platform::justin();
-    let cfg = rollbase_control::avoidance::AvoidanceConfig::default();
-    let d_start = rollbase_control::avoidance::field_radius(&cfg, p.wheels[1].lambda_nominal);
+    let cfg = rollbase_control::reference::avoidance::AvoidanceConfig::default();
+    let d_start =
+        rollbase_control::reference::avoidance::field_radius(&cfg, p.wheels[1].lambda_nominal);
     for mode in ["locked", "on"] {
         let mut o = LiveOptions::default();
-        o.runtime.avoidance = rollbase_control::scenario::avoidance_mode(mode).unwrap();
+        o.runtime.avoidance = rollbase_control::runtime::scenario::avoidance_mode(mode).unwrap();
         let (vx, vy, om) = pivot_about(1, 0.6);
         let steps = [
             (vx, vy, om, None),

@@ -1,6 +1,6 @@
 //! Fault handling end to end: a silent module and a module fault, on virtual time.
 
-use rollbase_control::scenario::Scenario;
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::supervisor::{FaultReason, SupervisorState};
 use rollbase_tests::{assert_controlled_stop_from, run, RunOptions};
 use rollbase_vcan_sim::faults::{MotorFault, Silent};

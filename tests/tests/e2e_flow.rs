@@ -136,7 +136,7 @@ fn joystick(profile: Protocol, sigma: f64) {
     let achieved = if sigma == 0.0 {
         // Against the ideal execution (every message's twist held exactly until the next):
         // the base stops and re-steers where that is quicker than sweeping round (module
-        // docs of rollbase_control::shaper, "Transitions").
+        // docs of rollbase_control::reference::shaper, "Transitions").
         JOYSTICK_ACHIEVED
     } else {
         // Against the noise-free run: noise must not keep the base from moving.
@@ -352,14 +352,14 @@ fn untimed_and_mixed_files_end_cia402() {
 }
 
 /// `--avoidance on` (legs free).
-fn avoidance_on() -> Option<rollbase_control::avoidance::AvoidanceConfig> {
-    rollbase_control::scenario::avoidance_mode("on").expect("a mode")
+fn avoidance_on() -> Option<rollbase_control::reference::avoidance::AvoidanceConfig> {
+    rollbase_control::runtime::scenario::avoidance_mode("on").expect("a mode")
 }
 
 /// The seed-001 experiment (its controller and settings) with `--avoidance on`.
 fn seed001_avoidance_on(profile: Protocol) {
     let name = format!("seed 001, avoidance on ({})", profile_name(profile));
-    let mut opts = RunOptions::new(rollbase_control::scenario::Scenario::Seed001);
+    let mut opts = RunOptions::new(rollbase_control::runtime::scenario::Scenario::Seed001);
     opts.runtime.avoidance = avoidance_on();
     if profile == Protocol::Cia402 {
         opts = opts.cia402();

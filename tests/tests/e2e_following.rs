@@ -3,9 +3,9 @@
 //! run (they used to let it end in Stopped, 6.4 m and 180° from the goal), and a run that
 //! does not arrive must fail.
 
-use rollbase_control::scenario::Scenario;
+use rollbase_control::reference::trajectory::Waypoint;
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::supervisor::FaultReason;
-use rollbase_control::trajectory::Waypoint;
 use rollbase_control::ZVec;
 use rollbase_tests::{assert_controlled_stop_from, run, RunOptions};
 

@@ -1,7 +1,7 @@
 //! Closed-loop end-to-end tests through the full frame path, on virtual time.
 
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::ControllerKind;
-use rollbase_control::scenario::Scenario;
 use rollbase_control::supervisor::SupervisorState;
 use rollbase_tests::{assert_seed000_bounds, run, RunOptions};
 

@@ -16,8 +16,8 @@
 //! or the CiA 402 latency of these platforms (issue 25 report); those runs are not here
 //! until they hold the bounds.
 
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::ControllerKind;
-use rollbase_control::scenario::Scenario;
 use rollbase_control::{Platform, Protocol};
 use rollbase_tests::{
     assert_commands_within_limits, assert_tracking_bounds, run, run_live, twist_at, LiveOptions,
@@ -99,7 +99,7 @@ fn mpo700_off_centred_runs_seed000_cia402() {
 /// A live session: drive forwards, sideways, turn on the spot, an arc, back; a leg command
 /// in the middle (refused: no legs); release.
 fn live(p: Platform, profile: Protocol, controller: ControllerKind) -> RunOutcome {
-    use rollbase_control::ports::{CommandEvent, CommandKind, LegTargets};
+    use rollbase_control::service::ports::{CommandEvent, CommandKind, LegTargets};
     let n = p.n();
     let mut opts = LiveOptions {
         profile,

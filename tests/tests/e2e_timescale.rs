@@ -2,15 +2,15 @@
 //! lockstep: encode → virtual bus → simulated modules and plant with the simulator's
 //! defaults (noise, motor lag, encoder latency) → decode. Errors are the simulator's truth
 //! against the executed (scaled) reference; every command sent is within its speed and
-//! acceleration limits ([`rollbase_control::limits::check_command`]) on every cycle.
+//! acceleration limits ([`rollbase_control::reference::limits::check_command`]) on every cycle.
 
-use rollbase_control::record::CycleRecord;
+use rollbase_control::reference::timescale::Timing;
+use rollbase_control::reference::trajectory::{QuinticSpline, Trajectory, WaypointSpec};
+use rollbase_control::runtime::record::CycleRecord;
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::{
     run_lockstep, CycleCore, RunSummary, RuntimeConfig, VirtualLockstepBus,
 };
-use rollbase_control::scenario::Scenario;
-use rollbase_control::timescale::Timing;
-use rollbase_control::trajectory::{QuinticSpline, Trajectory, WaypointSpec};
 use rollbase_control::Platform;
 use rollbase_driver::fault::FaultModel;
 use rollbase_tests::flow::{icr_sweep, pivot, wp, z};
@@ -90,14 +90,17 @@ fn assert_bounds(name: &str, o: &Outcome) {
     assert_tracking_bounds(s, name);
     let p = &o.platform;
     for w in o.records.windows(2) {
-        if let Some(v) =
-            rollbase_control::limits::check_command(&p.limits, &w[0].command, &w[1].command, p.dt())
-        {
+        if let Some(v) = rollbase_control::reference::limits::check_command(
+            &p.limits,
+            &w[0].command,
+            &w[1].command,
+            p.dt(),
+        ) {
             panic!("{name}: cycle {} ({}): {v}", w[1].cycle, w[1].mode);
         }
     }
     assert!(
-        t.max_ratio <= 1.0 + rollbase_control::timescale::VERIFY_TOLERANCE,
+        t.max_ratio <= 1.0 + rollbase_control::reference::timescale::VERIFY_TOLERANCE,
         "{name}: the reference uses {} of its shares",
         t.max_ratio
     );
@@ -126,14 +129,14 @@ fn seed000_sends_the_same_frames_time_scaled_and_as_given() {
 fn seed001_with_its_avoidance_is_time_scaled_whether_the_scaling_is_on_or_off() {
     // The avoidance experiment (its default controller and avoidance): the avoidance acts on
     // the path before the run and the avoided path is always time-scaled
-    // (`rollbase_control::avoidance`, "Pre-planned trajectories"), with the default margins
+    // (`rollbase_control::reference::avoidance`, "Pre-planned trajectories"), with the default margins
     // when the scaling is off. So the same frames, bit for bit, and the run is slowed: the
     // nominal asks 5× the steering acceleration limit.
     let scaled = same_frames_scaled_and_raw(Scenario::Seed001);
     let timing = scaled.timing.expect("a time-scaled trajectory");
     assert!(
         timing.executed_duration_s > timing.nominal_duration_s
-            && timing.max_ratio <= 1.0 + rollbase_control::timescale::VERIFY_TOLERANCE,
+            && timing.max_ratio <= 1.0 + rollbase_control::reference::timescale::VERIFY_TOLERANCE,
         "{timing:?}"
     );
 }
@@ -144,7 +147,7 @@ fn seed001_with_its_avoidance_is_time_scaled_whether_the_scaling_is_on_or_off() 
 fn same_frames_scaled_and_raw(sc: Scenario) -> rollbase_tests::RunOutcome {
     let mut scaled_opts = rollbase_tests::RunOptions::new(sc);
     scaled_opts.runtime.time_scaling =
-        Some(rollbase_control::timescale::TimeScaleConfig::default());
+        Some(rollbase_control::reference::timescale::TimeScaleConfig::default());
     let scaled = rollbase_tests::run(&scaled_opts);
     let mut raw_opts = rollbase_tests::RunOptions::new(sc);
     raw_opts.runtime.time_scaling = None;
@@ -403,7 +406,7 @@ fn the_random_trajectories_mix_what_the_issue_asks_for() {
             let s = QuinticSpline::from_specs(&p, w).expect("valid");
             (0..=400).any(|k| {
                 let r = s.sample(s.duration() * k as f64 / 400.0);
-                rollbase_control::limits::reference_ratio(&p, &r).0 > 1.0
+                rollbase_control::reference::limits::reference_ratio(&p, &r).0 > 1.0
             })
         })
         .count();

@@ -10,8 +10,8 @@
 //! behaviour change: if one is ever intended, say why in the commit and update the hash
 //! from the test's output.
 
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::{run_lockstep, LockstepBus, VirtualLockstepBus};
-use rollbase_control::scenario::Scenario;
 use rollbase_driver::bus::BusError;
 use rollbase_driver::frame::{CanFrame, TimestampedFrame};
 use rollbase_tests::{build, RunOptions};

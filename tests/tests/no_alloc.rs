@@ -11,12 +11,14 @@
 //!
 //! Each test counts only its own thread's allocations, so the two may run in parallel.
 
-use rollbase_control::avoidance::AvoidanceConfig;
-use rollbase_control::ports::{CommandEvent, CommandKind, LegTargets, Limiting, MotionCommand};
+use rollbase_control::reference::avoidance::AvoidanceConfig;
+use rollbase_control::runtime::scenario::{self, Scenario};
 use rollbase_control::runtime::{
     lockstep_cycle, CycleCore, LockstepState, RuntimeConfig, StepHooks, VirtualLockstepBus,
 };
-use rollbase_control::scenario::{self, Scenario};
+use rollbase_control::service::ports::{
+    CommandEvent, CommandKind, LegTargets, Limiting, MotionCommand,
+};
 use rollbase_control::supervisor::SupervisorState;
 use rollbase_control::types::Twist;
 use rollbase_control::{Platform, Protocol};

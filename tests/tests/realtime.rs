@@ -5,8 +5,8 @@
 //! measured figures are in docs/performance.md).
 //! This file holds a single test so no other test of this suite competes for the CPU.
 
+use rollbase_control::runtime::scenario::{self, Scenario};
 use rollbase_control::runtime::{percentile, run_realtime, CycleCore, RealtimeOptions};
-use rollbase_control::scenario::{self, Scenario};
 use rollbase_control::Platform;
 use rollbase_driver::bus::{BusClock, VirtualBus, VirtualBusConfig};
 use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};

@@ -3,9 +3,9 @@
 //! limits (plus the supervisor's 20 % margin), and no run faults.
 
 use proptest::prelude::*;
+use rollbase_control::reference::trajectory::Waypoint;
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::ControllerKind;
-use rollbase_control::scenario::Scenario;
-use rollbase_control::trajectory::Waypoint;
 use rollbase_control::{Platform, ZVec, MAX_WHEELS};
 use rollbase_tests::campaign::{Hooks, Rig, RigOptions};
 

@@ -5,8 +5,8 @@
 //! [`rollbase_driver::rng::Rng`] seeded in [`Plant::new`]. No IO, no clock, no allocation after
 //! construction (all per-wheel data lives in `[_; MAX_WHEELS]` arrays).
 //!
-//! This model is deliberately written independently of `rollbase_control::model` and
-//! `rollbase_control::odometry`, so that it can check them.
+//! This model is deliberately written independently of `rollbase_control::model::kinematics` and
+//! `rollbase_control::estimation::odometry`, so that it can check them.
 //!
 //! # Motors
 //!
@@ -103,7 +103,7 @@
 //! of P_i: the tangential row is g_i = (−sin α_i, cos α_i, e_r,i · C_i), the radial equation
 //! carries ω (sin α_i C_ix − cos α_i C_iy), a blocked leg's rows are (1, 0, −C_iy) and
 //! (0, 1, C_ix). A wheel steered at rest thus pushes the body (and slips): the model of the
-//! scrub the controller avoids. This model is independent of `rollbase_control::model`'s.
+//! scrub the controller avoids. This model is independent of `rollbase_control::model::kinematics`'s.
 //!
 //! A wheel with a steering range has mechanical stops: the steering angle stops at them
 //! (and the steering motor with it); every step that presses a stop is counted

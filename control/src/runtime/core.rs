@@ -4,26 +4,26 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::{ControllerKind, RuntimeConfig, RuntimeError};
-use crate::avoidance::Avoidance;
-use crate::command::{check_legs, check_motion, Rejection};
-use crate::dfl::{alignment_command, ControlInput, DflController, TrackingController};
-use crate::kinematic::KinematicController;
-use crate::limits::guard_command;
-use crate::link::{Buses, Update, WheelFault};
-use crate::model::wheel_positions;
-use crate::odometry::{EncoderResolution, Odometry};
-use crate::platform::{Platform, MAX_BUSES};
-use crate::ports::{
+use crate::estimation::odometry::{EncoderResolution, Odometry};
+use crate::model::kinematics::wheel_positions;
+use crate::model::platform::{Platform, MAX_BUSES};
+use crate::reference::avoidance::Avoidance;
+use crate::reference::limits::guard_command;
+use crate::reference::shaper::Shaper;
+use crate::reference::trajectory::Trajectory;
+use crate::runtime::link::{Buses, Update, WheelFault};
+use crate::runtime::record::{AvoidanceRecord, CycleRecord, FrameRecord, MAX_RECORDED_COMMANDS};
+use crate::service::command::{check_legs, check_motion, Rejection};
+use crate::service::ports::{
     BaseState, CommandEvent, CommandKind, CommandStats, JointState, Limiting, ModuleDiagnostics,
     OdometryState, ShapingState,
 };
-use crate::record::{AvoidanceRecord, CycleRecord, FrameRecord, MAX_RECORDED_COMMANDS};
-use crate::shaper::Shaper;
 use crate::supervisor::FaultReason;
 use crate::supervisor::{
     command_at_rest, halt_command, Mode, Supervisor, SupervisorInput, SupervisorState,
 };
-use crate::trajectory::Trajectory;
+use crate::tracking::dfl::{alignment_command, ControlInput, DflController, TrackingController};
+use crate::tracking::kinematic::KinematicController;
 use crate::types::{Command, Measurement, ReferenceSample, Twist, MAX_WHEELS};
 use rollbase_driver::busload::frame_bits;
 use rollbase_driver::canopen::config::Role;
@@ -32,12 +32,16 @@ use rollbase_driver::codec::{ModuleState, Setpoint, SetpointFlags, FAULT_WATCHDO
 use rollbase_driver::frame::{CanFrame, FrameBuf};
 
 /// Checks, before anything starts, what no timing of the trajectory can fix
-/// ([`crate::timescale::check_fixable`]): a duration beyond 10 h, a leg leaving its range, a
+/// ([`crate::reference::timescale::check_fixable`]): a duration beyond 10 h, a leg leaving its range, a
 /// moving wheel whose direction of travel jumps (a corner without a stop). The error names
 /// the waypoint and the cause. Everything else runs, stretched where the limits need it
-/// ([`crate::timescale::ScaledTrajectory`], which [`CycleCore::new`] plans).
+/// ([`crate::reference::timescale::ScaledTrajectory`], which [`CycleCore::new`] plans).
 pub fn check_feasible(p: &Platform, traj: &dyn Trajectory) -> Result<(), RuntimeError> {
-    crate::timescale::check_fixable(p, traj, &crate::timescale::TimeScaleConfig::default())?;
+    crate::reference::timescale::check_fixable(
+        p,
+        traj,
+        &crate::reference::timescale::TimeScaleConfig::default(),
+    )?;
     Ok(())
 }
 
@@ -50,7 +54,7 @@ fn check_speeds(p: &Platform, traj: &dyn Trajectory) -> Result<(), RuntimeError>
     let n = p.n().min(MAX_WHEELS).min(traj.n_legs());
     let dt = p.dt();
     let d = traj.duration();
-    if !(d.is_finite() && (0.0..=crate::trajectory::MAX_WAYPOINT_TIME_S).contains(&d)) {
+    if !(d.is_finite() && (0.0..=crate::reference::trajectory::MAX_WAYPOINT_TIME_S).contains(&d)) {
         return Err(RuntimeError::Duration { duration: d });
     }
     // At most 10 h × 333 Hz = 12 million samples: every sample of every valid trajectory.
@@ -64,7 +68,14 @@ fn check_speeds(p: &Platform, traj: &dyn Trajectory) -> Result<(), RuntimeError>
             omega: r.dz[2],
         };
         for i in 0..n {
-            let u = crate::model::wheel_velocity_body(p, i, r.z[2], r.z[3 + i], &tw, r.dz[3 + i]);
+            let u = crate::model::kinematics::wheel_velocity_body(
+                p,
+                i,
+                r.z[2],
+                r.z[3 + i],
+                &tw,
+                r.dz[3 + i],
+            );
             let w = u[0].hypot(u[1]) / p.wheel_radius;
             if w.is_nan() || w > p.limits.wheel_speed {
                 return Err(RuntimeError::Infeasible {
@@ -102,23 +113,25 @@ fn prepare_trajectory(
     // With the avoidance on, it acts on the path before the run, and the avoided path (a
     // path the avoidance made, not the one given) is always time-scaled within every limit,
     // with the configured margins or, when the scaling is off, the default ones
-    // (`crate::avoidance`, "Pre-planned trajectories"); a trajectory already time-scaled is
+    // (`crate::reference::avoidance`, "Pre-planned trajectories"); a trajectory already time-scaled is
     // avoided and scaled again. A configuration that fails validation is off, as online.
     if let Some(a) = cfg.avoidance.filter(|a| a.enabled && a.validate(p).is_ok()) {
-        let avoided = crate::avoidance::AvoidedTrajectory::plan(p, trajectory, a)?;
-        return Ok(Box::new(crate::timescale::ScaledTrajectory::plan(
-            p,
-            Box::new(avoided),
-            cfg.time_scaling.unwrap_or_default(),
-        )?));
+        let avoided = crate::reference::avoidance::AvoidedTrajectory::plan(p, trajectory, a)?;
+        return Ok(Box::new(
+            crate::reference::timescale::ScaledTrajectory::plan(
+                p,
+                Box::new(avoided),
+                cfg.time_scaling.unwrap_or_default(),
+            )?,
+        ));
     }
     if trajectory.time_scale(0.0).is_some() {
         return Ok(trajectory);
     }
     match cfg.time_scaling {
-        Some(ts) => Ok(Box::new(crate::timescale::ScaledTrajectory::plan(
-            p, trajectory, ts,
-        )?)),
+        Some(ts) => Ok(Box::new(
+            crate::reference::timescale::ScaledTrajectory::plan(p, trajectory, ts)?,
+        )),
         None => {
             check_feasible(p, trajectory.as_ref())?;
             check_speeds(p, trajectory.as_ref())?;
@@ -294,8 +307,8 @@ pub struct CycleCore {
 }
 
 /// Contact speed (m/s) from which the DFL takes over from the kinematic controller when
-/// following live commands; it hands back below [`crate::dfl::EPSILON`] (hysteresis).
-pub const DFL_ENTRY_SPEED: f64 = 2.0 * crate::dfl::EPSILON;
+/// following live commands; it hands back below [`crate::tracking::dfl::EPSILON`] (hysteresis).
+pub const DFL_ENTRY_SPEED: f64 = 2.0 * crate::tracking::dfl::EPSILON;
 
 /// A trajectory run whose reference has ended is done once the platform rests within this
 /// distance (m) of the reference's end (by the estimate; the tracking controllers' last
@@ -340,7 +353,7 @@ impl CycleCore {
     }
 
     /// Builds the core of the base service: it follows live motion commands
-    /// ([`CycleCore::command`]) through the shaper ([`crate::shaper`]), from wherever the
+    /// ([`CycleCore::command`]) through the shaper ([`crate::reference::shaper`]), from wherever the
     /// platform is when it is armed. Odometry starts at the origin of the odometry frame.
     pub fn new_live(platform: Platform, cfg: RuntimeConfig) -> Result<Self, RuntimeError> {
         platform.validate()?;
@@ -352,7 +365,7 @@ impl CycleCore {
         }
         let mut shaper = Shaper::new(&platform, cfg.shaper);
         // Live commands: the avoidance acts on the command, before the shaper (the shaped
-        // reference then carries the avoided motion within every limit; `crate::avoidance`,
+        // reference then carries the avoided motion within every limit; `crate::reference::avoidance`,
         // "Live commands"). A configuration that fails validation is off, as on trajectories.
         shaper.set_avoidance(cfg.avoidance.filter(|a| a.validate(&platform).is_ok()));
         let source = Source::Live(Box::new(LiveSource {
@@ -544,7 +557,7 @@ impl CycleCore {
     /// The timing of the trajectory being followed when it is time-scaled: nominal and
     /// executed durations, the slowest scale and why (`None` for live commands or an
     /// unscaled trajectory).
-    pub fn trajectory_timing(&self) -> Option<crate::timescale::Timing> {
+    pub fn trajectory_timing(&self) -> Option<crate::reference::timescale::Timing> {
         match &self.source {
             Source::Trajectory(s) => s.traj.timing(),
             Source::Live(_) => None,
@@ -633,7 +646,7 @@ impl CycleCore {
     }
 
     /// The command port: takes one event from a command source, received at `ev.t` (s, on
-    /// the run's time base). Motion commands are checked ([`crate::command`]) and rejected
+    /// the run's time base). Motion commands are checked ([`crate::service::command`]) and rejected
     /// ones are counted and never reach the wheels; valid ones go to the shaper while the
     /// platform follows commands (Tracking), and are counted as ignored otherwise (stopped or
     /// in fault: re-arm first). With a trajectory source only `Shutdown` (and `Stop`) act: a
@@ -1028,7 +1041,7 @@ impl CycleCore {
         &mut self,
         sup_in: &SupervisorInput,
         meas: &Measurement,
-        odo: &crate::odometry::OdometryOutput,
+        odo: &crate::estimation::odometry::OdometryOutput,
         track_cmd: &mut Command,
     ) -> Mode {
         let at_rest = command_at_rest(&self.last_cmd, self.sup.config().rest_speed);
@@ -1067,7 +1080,7 @@ impl CycleCore {
         &mut self,
         t: f64,
         fb: &Decoded,
-        odo: &crate::odometry::OdometryOutput,
+        odo: &crate::estimation::odometry::OdometryOutput,
         (nominal, reference): (&ReferenceSample, &ReferenceSample),
         av: AvoidanceRecord,
         sent: &Sent,
@@ -1170,7 +1183,7 @@ impl CycleCore {
     fn reference(
         &mut self,
         meas: &Measurement,
-        odo: &crate::odometry::OdometryOutput,
+        odo: &crate::estimation::odometry::OdometryOutput,
     ) -> ReferenceSample {
         let t_ref = self.reference_time();
         let tracking = self.sup.state() == SupervisorState::Tracking;
@@ -1197,12 +1210,12 @@ impl CycleCore {
     }
 
     /// Singularity avoidance of this cycle's reference (seed 001). A trajectory was avoided
-    /// before the run ([`crate::avoidance::AvoidedTrajectory`], built by
+    /// before the run ([`crate::reference::avoidance::AvoidedTrajectory`], built by
     /// `prepare_trajectory` whenever the avoidance is on): its sample is the avoided
     /// reference, and the record is the filter's state at the clock's path time; a
     /// trajectory without that record would go through [`Avoidance::step`] while tracking
     /// (none does when the configuration is valid). Live commands were avoided before the
-    /// shaper ([`crate::avoidance`], "Live commands"): the shaped reference is followed as it
+    /// shaper ([`crate::reference::avoidance`], "Live commands"): the shaped reference is followed as it
     /// is, and the record says whether the command's ICR was moved out of a field.
     fn avoid(&mut self, nominal: &ReferenceSample, dt: f64) -> (ReferenceSample, AvoidanceRecord) {
         if let Source::Live(l) = &self.source {
@@ -1262,7 +1275,7 @@ impl CycleCore {
     fn supervisor_input(
         &mut self,
         fb: &Decoded,
-        odo: &crate::odometry::OdometryOutput,
+        odo: &crate::estimation::odometry::OdometryOutput,
         nominal: &ReferenceSample,
     ) -> (SupervisorInput, Command) {
         let (meas, age, alive, stale_node) = (&fb.meas, fb.age, fb.alive, fb.stale_node);
@@ -1366,7 +1379,7 @@ impl CycleCore {
     fn control(
         &mut self,
         meas: &Measurement,
-        odo: &crate::odometry::OdometryOutput,
+        odo: &crate::estimation::odometry::OdometryOutput,
         reference: &ReferenceSample,
         sup_in: &mut SupervisorInput,
         dt: f64,
@@ -1390,7 +1403,11 @@ impl CycleCore {
                     // rest, or stops and goes on) the DFL takes over, initialised on it.
                     let mut v_ref = 0.0f64;
                     for i in 0..self.n {
-                        let u = crate::limits::contact_kinematics(&self.platform, i, reference)[0];
+                        let u = crate::reference::limits::contact_kinematics(
+                            &self.platform,
+                            i,
+                            reference,
+                        )[0];
                         v_ref = v_ref.max(u[0].hypot(u[1]));
                     }
                     if v_ref >= DFL_ENTRY_SPEED {
@@ -1445,11 +1462,13 @@ impl CycleCore {
                 // seed 000 Sect. IV) the kinematic controller holds and stops the platform.
                 let mut v_ref = 0.0f64;
                 for i in 0..self.n {
-                    let u = crate::limits::contact_kinematics(&self.platform, i, reference)[0];
+                    let u =
+                        crate::reference::limits::contact_kinematics(&self.platform, i, reference)
+                            [0];
                     v_ref = v_ref.max(u[0].hypot(u[1]));
                 }
                 let entry = if l.dfl_active {
-                    crate::dfl::EPSILON
+                    crate::tracking::dfl::EPSILON
                 } else {
                     DFL_ENTRY_SPEED
                 };
@@ -1484,7 +1503,7 @@ impl CycleCore {
     fn start_tracking(
         &mut self,
         meas: &Measurement,
-        odo: &crate::odometry::OdometryOutput,
+        odo: &crate::estimation::odometry::OdometryOutput,
     ) -> Command {
         let dt = self.platform.dt();
         self.controller_moved = false;
@@ -1501,10 +1520,10 @@ impl CycleCore {
                 // starts with the DFL).
                 let mut v0 = 0.0f64;
                 for i in 0..platform.n().min(MAX_WHEELS) {
-                    let u = crate::limits::contact_kinematics(platform, i, &r0)[0];
+                    let u = crate::reference::limits::contact_kinematics(platform, i, &r0)[0];
                     v0 = v0.max(u[0].hypot(u[1]));
                 }
-                s.terminal_active = dfl && v0 < crate::dfl::EPSILON;
+                s.terminal_active = dfl && v0 < crate::tracking::dfl::EPSILON;
                 r0
             }
             Source::Live(l) => {
@@ -1532,7 +1551,7 @@ impl CycleCore {
     }
 
     /// The command of the supervisor's mode; tracking and alignment commands pass the output
-    /// guard ([`crate::limits::guard_command`]): every wheel within its speed and
+    /// guard ([`crate::reference::limits::guard_command`]): every wheel within its speed and
     /// acceleration limits, the change scaled as a whole. A controlled stop of the supervisor
     /// (faults, operator stop outside tracking) ramps the wheel speeds down at the wheel
     /// acceleration limit and holds the steering at once.
@@ -1673,7 +1692,7 @@ impl CycleCore {
         &mut self,
         t: f64,
         meas: &Measurement,
-        odo: &crate::odometry::OdometryOutput,
+        odo: &crate::estimation::odometry::OdometryOutput,
         alive: [u32; MAX_WHEELS],
         dt: f64,
     ) {
@@ -1798,7 +1817,7 @@ fn dfl_entry_reference(
     }
     r.steer.valid = true;
     for i in 0..p.n().min(meas.n).min(MAX_WHEELS) {
-        let u = crate::limits::contact_kinematics(p, i, reference)[0];
+        let u = crate::reference::limits::contact_kinematics(p, i, reference)[0];
         let phi = meas.wheels[i].steer_angle;
         let a = u[1].atan2(u[0]);
         r.steer.angle[i] = if u[0] == 0.0 && u[1] == 0.0 {
@@ -1812,7 +1831,7 @@ fn dfl_entry_reference(
     r
 }
 
-/// The drives' lag compensation ([`crate::platform::Drives`]): adds τ × the reference's
+/// The drives' lag compensation ([`crate::model::platform::Drives`]): adds τ × the reference's
 /// acceleration to each wheel's command: the rolling acceleration along the wheel's measured
 /// heading, (u̇*·h)/r, and the steering acceleration φ̈* (or the steering reference's, for a
 /// wheel steered by it).
@@ -1826,15 +1845,15 @@ fn lag_compensation(
     if tw == 0.0 && ts == 0.0 {
         return cmd;
     }
-    let held = crate::dfl::held_wheels(p, reference);
+    let held = crate::tracking::dfl::held_wheels(p, reference);
     for i in 0..cmd.n.min(p.n()).min(MAX_WHEELS) {
         let phi = meas.wheels[i].steer_angle;
-        let du = crate::limits::contact_kinematics(p, i, reference)[1];
+        let du = crate::reference::limits::contact_kinematics(p, i, reference)[1];
         let a = (du[0] * phi.cos() + du[1] * phi.sin()) / p.wheel_radius;
         let sa = if held[i] {
             reference.steer.accel[i]
         } else {
-            crate::limits::wheel_demand(p, i, reference).steer_accel
+            crate::reference::limits::wheel_demand(p, i, reference).steer_accel
         };
         let w = &mut cmd.wheels[i];
         if a.is_finite() {
@@ -1852,8 +1871,8 @@ fn lag_compensation(
 /// steering drive's position.
 fn encoder_resolution(p: &Platform) -> EncoderResolution {
     match p.protocol {
-        crate::platform::Protocol::Native => EncoderResolution::default(),
-        crate::platform::Protocol::Cia402 => {
+        crate::model::platform::Protocol::Native => EncoderResolution::default(),
+        crate::model::platform::Protocol::Cia402 => {
             let c = p.cia402();
             let ws = c.drive.velocity_resolution().abs();
             let sa = (std::f64::consts::TAU / c.steer.increments_per_joint_rev()).abs();
@@ -1904,7 +1923,9 @@ mod tests {
     fn an_infeasible_tiny_limit_is_printed_readably() {
         let mut p = Platform::justin();
         p.limits.leg_speed = 1e-300;
-        let traj = crate::scenario::trajectory(crate::scenario::Scenario::Seed000, &p).unwrap();
+        let traj =
+            crate::runtime::scenario::trajectory(crate::runtime::scenario::Scenario::Seed000, &p)
+                .unwrap();
         let e = CycleCore::new(p, traj, super::super::RuntimeConfig::default())
             .err()
             .expect("infeasible");

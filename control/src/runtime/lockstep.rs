@@ -1,8 +1,8 @@
 //! The lockstep driver: the cycle core and a simulated peer on virtual time.
 
 use super::CycleCore;
-use crate::ports::CommandEvent;
-use crate::record::CycleRecord;
+use crate::runtime::record::CycleRecord;
+use crate::service::ports::CommandEvent;
 use crate::supervisor::SupervisorState;
 use crate::types::{Pose, MAX_WHEELS};
 use rollbase_driver::bus::BusError;

@@ -21,12 +21,17 @@
 //! SCHED_FIFO and locked memory, and hands records to a recorder over a bounded channel with
 //! `try_send` (a full channel drops the record and counts it: the cycle never blocks on IO).
 //!
-//! The module is split by job: [`core`] (the cycle without IO), [`lockstep`] (virtual time),
-//! [`realtime`] (the cycle thread) and [`summary`] (the figures of a run).
+//! The module is split by job: [`core`] (the cycle without IO), [`link`] (the cycle's wire
+//! side, native or CiA 402), [`lockstep`] (virtual time), [`realtime`] (the cycle thread),
+//! [`record`] (the per-cycle record), [`summary`] (the figures of a run) and [`scenario`]
+//! (the named runs: trajectory and configuration together).
 
 mod core;
+pub mod link;
 mod lockstep;
 mod realtime;
+pub mod record;
+pub mod scenario;
 mod summary;
 
 pub use self::core::{check_feasible, CycleCore, DFL_ENTRY_SPEED, FAULT_RESET_CYCLES};
@@ -40,8 +45,8 @@ pub use self::realtime::{
 };
 pub use self::summary::{percentile, RunSummary};
 
-use crate::avoidance::AvoidanceConfig;
 use crate::num::{Fixed3, Num};
+use crate::reference::avoidance::AvoidanceConfig;
 use crate::supervisor::SupervisorConfig;
 use rollbase_driver::bus::BusError;
 use rollbase_driver::rx::CounterPolicy;
@@ -85,13 +90,13 @@ pub struct RuntimeConfig {
     /// Cycles to stay in Stopped/Fault at rest before the run reports itself done.
     pub linger_cycles: u32,
     /// The live-command shaper's tunables (base service).
-    pub shaper: crate::shaper::ShaperConfig,
+    pub shaper: crate::reference::shaper::ShaperConfig,
     /// Bus bit rate (bit/s), for the measured bus load on the state port.
     pub bitrate: u32,
-    /// Time scaling of pre-planned trajectories ([`crate::timescale`]): every trajectory is
+    /// Time scaling of pre-planned trajectories ([`crate::reference::timescale`]): every trajectory is
     /// run on a clock that keeps each actuator within its share of its limits (`None`: as
     /// given, and refused if it exceeds a speed limit). Default on, with the shaper's margins.
-    pub time_scaling: Option<crate::timescale::TimeScaleConfig>,
+    pub time_scaling: Option<crate::reference::timescale::TimeScaleConfig>,
 }
 
 impl Default for RuntimeConfig {
@@ -103,9 +108,9 @@ impl Default for RuntimeConfig {
             feedback_window: rollbase_driver::busload::DEFAULT_FEEDBACK_WINDOW_S,
             counter_policy: CounterPolicy::AcceptWithLoss,
             linger_cycles: 25,
-            shaper: crate::shaper::ShaperConfig::default(),
+            shaper: crate::reference::shaper::ShaperConfig::default(),
             bitrate: 1_000_000,
-            time_scaling: Some(crate::timescale::TimeScaleConfig::default()),
+            time_scaling: Some(crate::reference::timescale::TimeScaleConfig::default()),
         }
     }
 }
@@ -114,9 +119,9 @@ impl RuntimeConfig {
     /// Checks the options against the platform's control period: the feedback window must
     /// leave the cycle its compute budget, the supervisor's thresholds their ranges. Errors
     /// name the option, the value and the bound.
-    pub fn validate(&self, p: &crate::platform::Platform) -> Result<(), RuntimeError> {
+    pub fn validate(&self, p: &crate::model::platform::Platform) -> Result<(), RuntimeError> {
         let dt = p.dt();
-        let max_window = dt - crate::platform::CYCLE_COMPUTE_BUDGET_S;
+        let max_window = dt - crate::model::platform::CYCLE_COMPUTE_BUDGET_S;
         if !(self.feedback_window.is_finite()
             && self.feedback_window > 0.0
             && self.feedback_window <= max_window)
@@ -135,9 +140,9 @@ impl RuntimeConfig {
             self.controller,
             p.wheels.iter().enumerate().find(|(_, w)| w.off_centred()),
         ) {
-            // The DFL's decoupling (seed 000 eq. 23, crate::dfl) is derived for centred
+            // The DFL's decoupling (seed 000 eq. 23, crate::tracking::dfl) is derived for centred
             // steering, where each wheel's angle is a function of ż. With an offset the angles
-            // are states of their own (crate::model, "Off-centred steering").
+            // are states of their own (crate::model::kinematics, "Off-centred steering").
             return Err(RuntimeError::Option {
                 field: "controller",
                 value: "dfl".into(),
@@ -158,7 +163,7 @@ impl RuntimeConfig {
 
     /// The default controller for a platform: the DFL (seed 000's), or the kinematic
     /// controller on a platform with off-centred wheels (which the DFL does not cover).
-    pub fn for_platform(mut self, p: &crate::platform::Platform) -> Self {
+    pub fn for_platform(mut self, p: &crate::model::platform::Platform) -> Self {
         if p.has_caster_offset() {
             self.controller = ControllerKind::Kinematic;
         }
@@ -179,7 +184,7 @@ pub enum RuntimeError {
     },
     /// The platform description is invalid.
     #[error(transparent)]
-    Config(#[from] crate::platform::ConfigError),
+    Config(#[from] crate::model::platform::ConfigError),
     /// The bus failed in a way the run cannot continue from.
     #[error("bus error: {0}")]
     Bus(#[from] BusError),
@@ -200,13 +205,13 @@ pub enum RuntimeError {
     /// The trajectory needs what no timing can fix (a leg out of range, a corner without a
     /// stop), or would last too long slowed into the limits.
     #[error(transparent)]
-    TimeScale(#[from] crate::timescale::TimeScaleError),
+    TimeScale(#[from] crate::reference::timescale::TimeScaleError),
     /// The avoidance applied to the trajectory before the run did not return to it
-    /// ([`crate::avoidance::AvoidedTrajectory`]).
+    /// ([`crate::reference::avoidance::AvoidedTrajectory`]).
     #[error(transparent)]
-    Avoidance(#[from] crate::avoidance::AvoidanceError),
+    Avoidance(#[from] crate::reference::avoidance::AvoidanceError),
     /// The trajectory's duration is not a finite time the runtime can check and run.
-    #[error("the trajectory lasts {} s: it must be a finite time of at most {} s (10 h); split longer runs", Num(*duration), crate::trajectory::MAX_WAYPOINT_TIME_S)]
+    #[error("the trajectory lasts {} s: it must be a finite time of at most {} s (10 h); split longer runs", Num(*duration), crate::reference::trajectory::MAX_WAYPOINT_TIME_S)]
     Duration {
         /// The duration (s).
         duration: f64,

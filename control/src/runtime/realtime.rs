@@ -1,8 +1,8 @@
 //! The real-time cycle thread: absolute deadlines, two wake-ups per cycle.
 
 use super::CycleCore;
-use crate::ports::{BaseState, CommandEvent};
-use crate::record::CycleRecord;
+use crate::runtime::record::CycleRecord;
+use crate::service::ports::{BaseState, CommandEvent};
 use rollbase_driver::bus::CanBus;
 use rollbase_driver::frame::FrameBuf;
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -1,6 +1,6 @@
 //! Summary figures of a run, accumulated from its records.
 
-use crate::record::CycleRecord;
+use crate::runtime::record::CycleRecord;
 use crate::supervisor::SupervisorState;
 use crate::types::MAX_WHEELS;
 
@@ -56,10 +56,10 @@ pub struct RunSummary {
     /// Longest time from a command timeout or stop request to the commanded wheels at rest
     /// (s); `None` when the run had none.
     pub stop_time_s: Option<f64>,
-    /// The trajectory's time scaling ([`crate::timescale`]): nominal and executed durations,
+    /// The trajectory's time scaling ([`crate::reference::timescale`]): nominal and executed durations,
     /// the slowest scale and what limits it there (`None`: live commands or an unscaled
     /// trajectory). Set by the caller from [`super::CycleCore::trajectory_timing`].
-    pub timing: Option<crate::timescale::Timing>,
+    pub timing: Option<crate::reference::timescale::Timing>,
     /// The pose estimate (odometry) of the last cycle: where the platform ended up, as the
     /// driver knows it (`None` before the first cycle).
     pub final_pose: Option<crate::types::Pose>,
@@ -111,7 +111,7 @@ impl RunSummary {
         self.ignored_commands = r.commands.ignored;
         let halted = matches!(
             r.shaping.limiting,
-            crate::ports::Limiting::Timeout | crate::ports::Limiting::Stop
+            crate::service::ports::Limiting::Timeout | crate::service::ports::Limiting::Stop
         );
         let at_rest = r.command.wheels[..n]
             .iter()
@@ -276,7 +276,7 @@ impl RunSummary {
                 "x": f(p.x), "y": f(p.y), "theta": f(p.theta),
             })),
             "time_scale_limit": self.timing.and_then(|t| {
-                (t.limiting != crate::ports::Limiting::None)
+                (t.limiting != crate::service::ports::Limiting::None)
                     .then(|| format!("wheel {} {}", t.wheel + 1, t.limiting.name()))
             }),
         })

@@ -159,7 +159,7 @@ pub fn markdown() -> String {
          --profile cia402` prints every field). Each wheel is three CANopen devices: a rolling \
          drive and a steering drive speaking CiA 402 in cyclic synchronous velocity mode, and \
          the leg's absolute linear encoder speaking CiA 406. The same controller, supervisor and \
-         recording run on it; only the link changes (`control/src/link.rs`). The facts used \
+         recording run on it; only the link changes (`control/src/runtime/link.rs`). The facts used \
          (COB-IDs, SDO and NMT command specifiers, statusword and controlword bits, state \
          transitions, device-type encoding) are those of CiA 301 v4.2, CiA 402 \
          (IEC 61800-7-201) and CiA 406 v3.1.\n\n",

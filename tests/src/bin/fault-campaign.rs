@@ -7,7 +7,7 @@
 //! ```
 //!
 //! Exit code 1 when any case fails its assertions.
-use rollbase_control::scenario::Scenario;
+use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::supervisor::FaultReason;
 use rollbase_tests::campaign::*;
 use rollbase_vcan_sim::faults::{DriveGain, EncoderJump, EncoderStuck, MotorFault};

@@ -30,11 +30,11 @@
 //! section of an existing report (from the live benchmark's results), leaving every other
 //! figure as it was measured.
 
-use rollbase_control::record::CycleRecord;
+use rollbase_control::runtime::record::CycleRecord;
+use rollbase_control::runtime::scenario::{self, Scenario};
 use rollbase_control::runtime::{
     percentile, realtime_setup, run_realtime, CycleCore, RealtimeOptions,
 };
-use rollbase_control::scenario::{self, Scenario};
 use rollbase_control::Platform;
 use rollbase_driver::bus::{BusClock, VirtualBus, VirtualBusConfig};
 use rollbase_driver::busload::{bus_load, frame_bits, BusLoadConfig};

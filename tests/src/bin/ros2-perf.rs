@@ -33,12 +33,12 @@
 use rollbase::ros2::dds::{qos, Dds};
 use rollbase::ros2::msg::{JointState, Odometry, Twist};
 use rollbase::ros2::{spawn_node, Ros2Options};
-use rollbase_control::ports::{BaseState, CommandEvent, CommandKind};
-use rollbase_control::record::CycleRecord;
+use rollbase_control::runtime::record::CycleRecord;
 use rollbase_control::runtime::{
     percentile, realtime_setup, run_realtime_io, CycleCore, RealtimeIo, RealtimeOptions,
     RuntimeConfig,
 };
+use rollbase_control::service::ports::{BaseState, CommandEvent, CommandKind};
 use rollbase_control::Platform;
 use rollbase_driver::bus::{BusClock, BusError, CanBus, VirtualBus, VirtualBusConfig};
 use rollbase_driver::frame::{CanFrame, TimestampedFrame};

@@ -10,9 +10,9 @@
 //!
 //! Defaults: docs/examples/time-scaling.toml → docs/img/time-scale.svg.
 
-use rollbase_control::ports::Limiting;
-use rollbase_control::timescale::{ScaledTrajectory, TimeScaleConfig};
-use rollbase_control::trajectory::{load_waypoints, Trajectory};
+use rollbase_control::reference::timescale::{ScaledTrajectory, TimeScaleConfig};
+use rollbase_control::reference::trajectory::{load_waypoints, Trajectory};
+use rollbase_control::service::ports::Limiting;
 use rollbase_control::Platform;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};

@@ -109,7 +109,7 @@ enum CliError {
     #[error("`--start` = {value}: not `nominal`, a scenario (`scenario:seed000`, `scenario:seed001`) or a usable waypoint file: {source}")]
     Start {
         value: String,
-        source: rollbase_control::trajectory::TrajectoryError,
+        source: rollbase_control::reference::trajectory::TrajectoryError,
     },
     #[error("cannot start the signal handler runtime: {0}")]
     Runtime(std::io::Error),
@@ -183,8 +183,8 @@ fn run(cli: Cli) -> Result<(), CliError> {
         "nominal" => None,
         other => {
             let name = other.strip_prefix("scenario:").unwrap_or(other);
-            let r0 = match name.parse::<rollbase_control::scenario::Scenario>() {
-                Ok(sc) => rollbase_control::scenario::trajectory(sc, &platform)
+            let r0 = match name.parse::<rollbase_control::runtime::scenario::Scenario>() {
+                Ok(sc) => rollbase_control::runtime::scenario::trajectory(sc, &platform)
                     .map_err(|_| CliError::Option {
                         option: "--start",
                         value: other.to_string(),
@@ -200,8 +200,8 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 // A waypoint file: the platform starts at its first waypoint (the time
                 // scaling never moves the start).
                 Err(_) => {
-                    use rollbase_control::trajectory::Trajectory;
-                    rollbase_control::trajectory::load_waypoints(&platform, other)
+                    use rollbase_control::reference::trajectory::Trajectory;
+                    rollbase_control::reference::trajectory::load_waypoints(&platform, other)
                         .map_err(|source| CliError::Start {
                             value: other.to_string(),
                             source,

@@ -295,7 +295,7 @@ fn rot_t(theta: f64) -> DMatrix<f64> {
 }
 
 /// Seed 000's platform as a WMR: n centred steerable wheels at (λ_i, α_i) (fixed legs).
-pub fn from_platform(p: &crate::platform::Platform, legs: &[f64]) -> Robot {
+pub fn from_platform(p: &crate::model::platform::Platform, legs: &[f64]) -> Robot {
     Robot {
         wheels: p
             .wheels
@@ -453,7 +453,7 @@ mod tests {
     #[test]
     fn justin_with_fixed_legs_is_type_1_2() {
         // seed 000, footnote 2: the fixed-leg model (7) is of type (1, 2)
-        let p = crate::platform::Platform::justin();
+        let p = crate::model::platform::Platform::justin();
         let robot = from_platform(&p, &[0.45; 4]);
         // wheels coordinated on an ICR at (0, 2) m in the body frame
         let angles: Vec<f64> = robot

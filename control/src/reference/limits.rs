@@ -1,12 +1,12 @@
 //! The actuator limits: one description ([`Limits`], from the platform file) and one place
-//! that evaluates and checks them, shared by the live-command shaper ([`crate::shaper`]), the
-//! time scaling of pre-planned trajectories ([`crate::timescale`]), the output guard of the
+//! that evaluates and checks them, shared by the live-command shaper ([`crate::reference::shaper`]), the
+//! time scaling of pre-planned trajectories ([`crate::reference::timescale`]), the output guard of the
 //! cycle and the tests.
 //!
 //! # What a motion asks of a wheel module
 //!
 //! For a reference z = (x, y, θ, λ) with derivatives ż, z̈, z⃛ (world frame), wheel i's contact
-//! velocity in the body frame is (seed 000 eq. 18; [`crate::model::wheel_velocity_body`])
+//! velocity in the body frame is (seed 000 eq. 18; [`crate::model::kinematics::wheel_velocity_body`])
 //!
 //! ```text
 //! u  = Rᵀ(θ) v + θ̇ λ e⊥ + λ̇ e                    (v = (ẋ, ẏ), e = (cos α, sin α), e⊥ = J e)
@@ -39,8 +39,8 @@
 //! one wheel clamped), the largest κ for which every wheel acceleration and steering
 //! acceleration is within its limit.
 
-use crate::platform::{Limits, Platform};
-use crate::ports::Limiting;
+use crate::model::platform::{Limits, Platform};
+use crate::service::ports::Limiting;
 use crate::types::{Command, ReferenceSample, MAX_WHEELS};
 
 /// Contact speed (m/s) below which a wheel holds its steering angle: its direction of travel
@@ -373,8 +373,14 @@ mod tests {
                     vy: r.dz[1],
                     omega: r.dz[2],
                 };
-                let u0 =
-                    crate::model::wheel_velocity_body(&p, i, r.z[2], r.z[3 + i], &tw, r.dz[3 + i]);
+                let u0 = crate::model::kinematics::wheel_velocity_body(
+                    &p,
+                    i,
+                    r.z[2],
+                    r.z[3 + i],
+                    &tw,
+                    r.dz[3 + i],
+                );
                 for d in 0..2 {
                     assert!((u[d] - u0[d]).abs() < 1e-12);
                     let fd1 = (up[d] - um[d]) / (2.0 * h);

@@ -8,7 +8,7 @@
 //! 2. Its time derivative for the analytic steering rates: z̈* + K (ż* − ż_prev), where
 //!    ż_prev is the previous cycle's command (what the platform is doing now).
 //! 3. Per wheel: u_i (body contact velocity), φ_i = atan2(u_i), φ̇_i analytically
-//!    ([`crate::model`]), plus `steer_kp`·(angle error).
+//!    ([`crate::model::kinematics`]), plus `steer_kp`·(angle error).
 //! 4. ±π branch chosen **for the whole platform**: a single flip flag; it toggles (with
 //!    hysteresis) only when the largest steering error under the current branch exceeds
 //!    π/2 + `FLIP_HYSTERESIS` and the other branch is better. No wheel flips alone. With a
@@ -16,21 +16,21 @@
 //!    trajectories) each wheel rolls on the branch of the reference's steering angle instead:
 //!    the reference is continuous and already says which way each wheel rolls (after a
 //!    reversal through zero on a line, a wheel rolls backwards while the others roll on).
-//! 5. Wheels whose contact speed is below [`crate::dfl::REST_SPEED`] hold their angle; with a
+//! 5. Wheels whose contact speed is below [`crate::tracking::dfl::REST_SPEED`] hold their angle; with a
 //!    steering reference, wheels whose *reference* contact speed is below
-//!    [`crate::limits::HOLD_SPEED`] follow the reference's angle and rate instead
-//!    ([`crate::dfl::held_wheels`]): the feedback's small corrections never turn a wheel the
+//!    [`crate::reference::limits::HOLD_SPEED`] follow the reference's angle and rate instead
+//!    ([`crate::tracking::dfl::held_wheels`]): the feedback's small corrections never turn a wheel the
 //!    ICR rests on; up to three times that speed the two are blended
-//!    ([`crate::dfl::steer_weights`]), so the hand-over is continuous.
+//!    ([`crate::tracking::dfl::steer_weights`]), so the hand-over is continuous.
 //! 6. Rolling speed = ± |u_i| cos(e_i) for steering error |e_i| < π/2, else 0: a wheel
 //!    that still points the wrong way does not roll, and rolls fully once aligned.
 //! 7. Desaturation (seed 004 Sect. on actuator limits, α_s scaling; WPILib
 //!    `desaturateWheelSpeeds`): if any wheel spin, steering rate or leg rate exceeds its
 //!    limit, the whole command is multiplied by 1/ratio so its direction is kept.
 //!
-//! 8. Off-centred wheels (caster offset d > 0, [`crate::model`], "Off-centred steering") are
+//! 8. Off-centred wheels (caster offset d > 0, [`crate::model::kinematics`], "Off-centred steering") are
 //!    commanded by the slip-free caster law at their measured angle, v_W = u·h, φ̇ = (u·h⊥)/d
-//!    − θ̇ ([`crate::model::caster_inverse`]): a wheel rolling forward (trailing) turns towards
+//!    − θ̇ ([`crate::model::kinematics::caster_inverse`]): a wheel rolling forward (trailing) turns towards
 //!    its direction of travel by itself and is never steered at rest. A wheel that points
 //!    backwards along its direction of travel (after a reversal) rolls backwards as a
 //!    leading caster, its steering held on the leading angle ψ + π + lag by `steer_kp`
@@ -47,11 +47,11 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::angle;
-use crate::dfl::{
+use crate::model::kinematics::{steer_from_velocity, wheel_acceleration_body, wheel_velocity_body};
+use crate::model::platform::Platform;
+use crate::tracking::dfl::{
     desaturate, limit_ratio, ControlInput, ControlOutput, TrackingController, REST_SPEED,
 };
-use crate::model::{steer_from_velocity, wheel_acceleration_body, wheel_velocity_body};
-use crate::platform::Platform;
 use crate::types::{Command, ReferenceSample, Twist, MAX_WHEELS};
 use std::f64::consts::{FRAC_PI_2, PI};
 
@@ -72,7 +72,7 @@ pub const LEAD_RELEASE: f64 = 0.6;
 /// (updated). Near a steering stop the rate towards it fades with the distance left.
 #[allow(clippy::too_many_arguments)]
 pub fn caster_command(
-    w: &crate::platform::WheelConfig,
+    w: &crate::model::platform::WheelConfig,
     u: [f64; 2],
     du: [f64; 2],
     omega: f64,
@@ -82,10 +82,10 @@ pub fn caster_command(
 ) -> (f64, f64) {
     let d = w.caster_offset;
     let sp = u[0].hypot(u[1]);
-    let (roll, mut rate) = crate::model::caster_inverse(u, phi, omega, d);
+    let (roll, mut rate) = crate::model::kinematics::caster_inverse(u, phi, omega, d);
     if sp >= REST_SPEED && sp.is_finite() {
         let psi = steer_from_velocity(u, du);
-        let lag = crate::model::caster_lag(sp, psi.steer_rate + omega, d, true);
+        let lag = crate::model::kinematics::caster_lag(sp, psi.steer_rate + omega, d, true);
         let e = angle::diff(psi.steer_angle + PI + lag, phi);
         *leading = e.abs() < if *leading { LEAD_RELEASE } else { LEAD_ENTRY };
         if *leading {
@@ -219,8 +219,8 @@ impl KinematicController {
         let mut moving = [false; MAX_WHEELS];
         let mut min_speed = f64::INFINITY;
         let mut fastest = (0usize, -1.0);
-        let held = crate::dfl::held_wheels(p, r);
-        let weight = crate::dfl::steer_weights(p, r);
+        let held = crate::tracking::dfl::held_wheels(p, r);
+        let weight = crate::tracking::dfl::steer_weights(p, r);
         let mut caster: [Option<(f64, f64)>; MAX_WHEELS] = [None; MAX_WHEELS];
         for i in 0..n {
             let leg = m.wheels[i].leg;
@@ -312,7 +312,10 @@ impl KinematicController {
                 (off0, sign0)
             };
             let (rate, roll) = if held[i] {
-                (crate::dfl::held_steer_rate(p, r, i, phi), speed[i])
+                (
+                    crate::tracking::dfl::held_steer_rate(p, r, i, phi),
+                    speed[i],
+                )
             } else if moving[i] {
                 let e = angle::steer_error(range, target[i] + off, phi);
                 let scale = if e.abs() < FRAC_PI_2 { e.cos() } else { 0.0 };
@@ -320,7 +323,7 @@ impl KinematicController {
                 // Near the hold speed, blended with the reference's angle (dfl::steer_weights).
                 let w = weight[i];
                 let rate = if w < 1.0 {
-                    w * own + (1.0 - w) * crate::dfl::held_steer_rate(p, r, i, phi)
+                    w * own + (1.0 - w) * crate::tracking::dfl::held_steer_rate(p, r, i, phi)
                 } else {
                     own
                 };
@@ -372,8 +375,10 @@ impl TrackingController for KinematicController {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dfl::harness::run;
-    use crate::trajectory::{seed000_experiment, ComponentTrajectory, QuasiTrapezoid, Trajectory};
+    use crate::reference::trajectory::{
+        seed000_experiment, ComponentTrajectory, QuasiTrapezoid, Trajectory,
+    };
+    use crate::tracking::dfl::harness::run;
 
     #[test]
     fn kinematic_tracks_the_seed000_experiment() {

@@ -65,7 +65,7 @@
 // Index loops over parallel per-wheel arrays read better than zipped iterators here.
 #![allow(clippy::needless_range_loop)]
 
-use crate::platform::Platform;
+use crate::model::platform::Platform;
 use crate::types::{Pose, Twist, ZVec, MAX_WHEELS};
 
 /// Per-wheel setpoint derived from the output trajectory.

@@ -21,7 +21,7 @@
 //!
 //! # What a timing asks of the actuators
 //!
-//! Wheel i's contact velocity is linear in ż for a given z ([`crate::limits`], seed 000 eq.
+//! Wheel i's contact velocity is linear in ż for a given z ([`crate::reference::limits`], seed 000 eq.
 //! 18), so along the scaled reference u_i = w_i ṡ with w_i(τ) the contact velocity of the
 //! nominal path at ṡ = 1 (w_i', w_i'' its τ-derivatives: [`contact_kinematics`] of the
 //! nominal sample). Its direction φ_i = atan2(w_i) does not depend on the timing. With
@@ -85,7 +85,7 @@
 //!    the t_j: τ(t) is C² with bounded s⃛ and meets every knot exactly.
 //! 6. **Verification and repair.** Every demand is evaluated at every grid point and at three
 //!    points between each two (from the inner sample and the clock by the chain rule, the same numbers as
-//!    [`crate::limits::wheel_demand`] of the scaled sample). Where one exceeds its share by more than
+//!    [`crate::reference::limits::wheel_demand`] of the scaled sample). Where one exceeds its share by more than
 //!    [`VERIFY_TOLERANCE`], x̄ is lowered over the path within twice the jerk time of it (by
 //!    the ratio, squared for speed-type limits) and steps 2–6 run again, at most
 //!    [`MAX_REPAIRS`] times. [`Timing::max_ratio`] reports what remains.
@@ -108,8 +108,8 @@
 //! or end it is the limit of the directions next to it. The samples carry this angle, its
 //! rate and its acceleration as the [`SteerReference`] (whenever the clock is not ṡ ≡ 1,
 //! and whenever a wheel is held while the platform moves or the platform stops between two
-//! motions). The controllers follow it for wheels slower than [`crate::limits::HOLD_SPEED`]
-//! ([`crate::dfl::held_wheels`]), so such a wheel neither chatters nor flips, nor turns
+//! motions). The controllers follow it for wheels slower than [`crate::reference::limits::HOLD_SPEED`]
+//! ([`crate::tracking::dfl::held_wheels`]), so such a wheel neither chatters nor flips, nor turns
 //! after the feedback's corrections near rest. The blends' rates and accelerations are
 //! limited like any other steering demand.
 //!
@@ -152,7 +152,7 @@
 //! [`ScaledTrajectory::plan`] (and [`check_fixable`]) refuses, naming the waypoint when the
 //! trajectory has waypoints, and the cause: a leg outside its range, and a kink in the
 //! direction of travel of a moving wheel (the direction jumps while the wheel rolls: an
-//! infinite steering rate at any speed). The quintic splines of [`crate::trajectory`] are
+//! infinite steering rate at any speed). The quintic splines of [`crate::reference::trajectory`] are
 //! C², so their wheels' directions only jump where the wheel's contact velocity passes
 //! through zero, which is a roll reversal, not a kink; other trajectories are checked
 //! (bisection of a suspicious interval: a jump that does not shrink with it is a kink). A
@@ -161,10 +161,10 @@
 // Index loops over parallel per-wheel arrays read better than zipped iterators here.
 #![allow(clippy::needless_range_loop)]
 
-use crate::limits::{contact_kinematics, direction_rates, HOLD_SPEED};
-use crate::platform::Platform;
-use crate::ports::Limiting;
-use crate::trajectory::{eval_quintic, quintic, Trajectory};
+use crate::model::platform::Platform;
+use crate::reference::limits::{contact_kinematics, direction_rates, HOLD_SPEED};
+use crate::reference::trajectory::{eval_quintic, quintic, Trajectory};
+use crate::service::ports::Limiting;
 use crate::types::{ReferenceSample, SteerReference, MAX_WHEELS};
 use std::f64::consts::{FRAC_PI_2, PI};
 
@@ -178,8 +178,8 @@ pub const VERIFY_TOLERANCE: f64 = 0.01;
 /// Largest number of verification-and-repair rounds.
 pub const MAX_REPAIRS: usize = 16;
 /// Longest executed duration (s): 10 h, as for a trajectory's waypoint times
-/// ([`crate::trajectory::MAX_WAYPOINT_TIME_S`]).
-pub const MAX_EXECUTED_S: f64 = crate::trajectory::MAX_WAYPOINT_TIME_S;
+/// ([`crate::reference::trajectory::MAX_WAYPOINT_TIME_S`]).
+pub const MAX_EXECUTED_S: f64 = crate::reference::trajectory::MAX_WAYPOINT_TIME_S;
 /// A platform whose fastest wheel moves slower than this along the path (m/s at ṡ = 1) is at
 /// rest there (its wheels' directions are taken from the neighbouring points).
 const REST_W: f64 = 1e-9;
@@ -220,7 +220,7 @@ pub struct TimeScaleConfig {
     pub jerk_time: f64,
     /// A wheel slower than this fraction of the fastest wheel holds its steering angle (the
     /// ICR rests on it). Default 0.02 (at the platform's top rolling speed, 2.4 cm/s:
-    /// about [`crate::limits::HOLD_SPEED`]).
+    /// about [`crate::reference::limits::HOLD_SPEED`]).
     pub hold_ratio: f64,
     /// Largest ṡ where the timing is free (waypoints without a time): their nominal
     /// parametrisation runs at the platform's top speeds, so the limits bind well below this
@@ -237,7 +237,7 @@ pub struct TimeScaleConfig {
 
 impl Default for TimeScaleConfig {
     fn default() -> Self {
-        Self::from_shaper(&crate::shaper::ShaperConfig::default())
+        Self::from_shaper(&crate::reference::shaper::ShaperConfig::default())
     }
 }
 
@@ -245,7 +245,7 @@ impl TimeScaleConfig {
     /// The margins shared with the live-command shaper (its speed fraction and jerk time:
     /// one description of how much of each speed limit a reference may use and how fast its
     /// accelerations may build up), with the scaling's own defaults for the rest.
-    pub fn from_shaper(s: &crate::shaper::ShaperConfig) -> Self {
+    pub fn from_shaper(s: &crate::reference::shaper::ShaperConfig) -> Self {
         Self {
             speed_fraction: s.speed_fraction,
             accel_fraction: 0.5,
@@ -1550,7 +1550,7 @@ impl Piece {
 
     /// Largest demand over its share at one instant, from the inner sample `r` at the
     /// clock's τ and the clock (the chain rule of the module docs; the same as
-    /// [`crate::limits::wheel_demand`] of the scaled sample, test `demands_match_the_scaled_samples`):
+    /// [`crate::reference::limits::wheel_demand`] of the scaled sample, test `demands_match_the_scaled_samples`):
     /// (ratio, limit, wheel, speed-type).
     fn ratio(
         &self,
@@ -2410,7 +2410,7 @@ impl Trajectory for ScaledTrajectory {
     fn timing(&self) -> Option<Timing> {
         Some(self.timing)
     }
-    fn avoidance_at(&self, t: f64) -> Option<crate::avoidance::AvoidanceState> {
+    fn avoidance_at(&self, t: f64) -> Option<crate::reference::avoidance::AvoidanceState> {
         // The avoided path's record at the path time the clock has reached.
         self.inner.avoidance_at(self.clock(t).0)
     }
@@ -2419,8 +2419,8 @@ impl Trajectory for ScaledTrajectory {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::limits::wheel_demand;
-    use crate::trajectory::{QuinticSpline, Waypoint, WaypointSpec};
+    use crate::reference::limits::wheel_demand;
+    use crate::reference::trajectory::{QuinticSpline, Waypoint, WaypointSpec};
     use crate::types::ZVec;
 
     fn z(x: f64, y: f64, th: f64, legs: [f64; 4]) -> ZVec {
@@ -2466,7 +2466,7 @@ mod tests {
     #[test]
     fn seed000_passes_through_bit_for_bit() {
         let p = Platform::justin();
-        let inner = crate::trajectory::seed000_experiment(&p);
+        let inner = crate::reference::trajectory::seed000_experiment(&p);
         let s = ScaledTrajectory::plan(&p, Box::new(inner), TimeScaleConfig::default()).unwrap();
         assert!(s.is_pass_through());
         let t = s.timing().unwrap();
@@ -2494,7 +2494,9 @@ mod tests {
         let inner = QuinticSpline::new(&p, &w).unwrap();
         // Unscaled it asks far more than the limits allow.
         let worst = (0..=500)
-            .map(|k| crate::limits::reference_ratio(&p, &inner.sample(k as f64 * 0.01)).0)
+            .map(|k| {
+                crate::reference::limits::reference_ratio(&p, &inner.sample(k as f64 * 0.01)).0
+            })
             .fold(0.0, f64::max);
         assert!(worst > 3.0, "{worst}");
         let s = plan(&w);
@@ -2875,7 +2877,7 @@ mod tests {
                 vy: -0.8 * icr[0],
                 omega: 0.8,
             };
-            pose = crate::model::se2_integrate(pose, &tw, dt);
+            pose = crate::model::kinematics::se2_integrate(pose, &tw, dt);
             if (q + 1) % 250 == 0 {
                 w.push(Waypoint {
                     t: (q + 1) as f64 * dt,
@@ -2939,10 +2941,10 @@ mod tests {
         // Why the seed-001 nominal is not scaled (its avoidance, which acts on it at its own
         // timing, is the experiment; the avoided path is then scaled).
         let p = Platform::justin();
-        let inner = crate::avoidance::Seed001Scenario::new(&p);
+        let inner = crate::reference::avoidance::Seed001Scenario::new(&p);
         let worst = (0..=2000)
             .map(|k| {
-                crate::limits::reference_ratio(
+                crate::reference::limits::reference_ratio(
                     &p,
                     &inner.sample(inner.duration() * k as f64 / 2000.0),
                 )
@@ -2952,12 +2954,13 @@ mod tests {
             worst.0 > 5.0 && worst.1 == Limiting::SteerAccel,
             "{worst:?}"
         );
-        let cfg = crate::scenario::runtime_config(crate::scenario::Scenario::Seed001);
+        let cfg =
+            crate::runtime::scenario::runtime_config(crate::runtime::scenario::Scenario::Seed001);
         assert!(cfg.time_scaling.is_none());
-        assert!(
-            crate::scenario::runtime_config(crate::scenario::Scenario::Seed000)
-                .time_scaling
-                .is_some()
-        );
+        assert!(crate::runtime::scenario::runtime_config(
+            crate::runtime::scenario::Scenario::Seed000
+        )
+        .time_scaling
+        .is_some());
     }
 }

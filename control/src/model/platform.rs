@@ -123,13 +123,13 @@ pub struct WheelConfig {
     pub leg: bool,
     /// Caster offset d ≥ 0 (m): the wheel's contact point trails the steering axis by d
     /// along the wheel plane, P_i − d (cos φ_i, sin φ_i) (seed 003's off-centred orientable
-    /// wheel; [`crate::model`], "Off-centred steering"). 0 = centred steering.
+    /// wheel; [`crate::model::kinematics`], "Off-centred steering"). 0 = centred steering.
     pub caster_offset: f64,
     /// Steering range [min, max] (rad) when the wheel cannot steer endlessly (cable stops):
     /// its steering angle never leaves it. `None`: endless (slip rings).
     pub steer_range: Option<[f64; 2]>,
     /// The CAN bus the module is on (0 or 1). The cycle core runs one link per bus
-    /// ([`crate::link::Buses`]); the command line drives one bus so far, so `rollbase` refuses
+    /// ([`crate::runtime::link::Buses`]); the command line drives one bus so far, so `rollbase` refuses
     /// to run a platform with wheels on bus 1 (`config check` accepts it).
     pub bus: u8,
     /// +1, or −1 for a rolling motor mounted mirrored: its positive direction rolls the

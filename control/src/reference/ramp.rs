@@ -3,8 +3,8 @@
 //! backward pass of path-velocity planning, here in one dimension), executed on a clock, and
 //! able to brake to rest at any moment within its acceleration caps.
 //!
-//! It is the one profile generator behind the shaper's transitions ([`crate::shaper`]) and
-//! the time scaling of trajectories ([`crate::timescale`]).
+//! It is the one profile generator behind the shaper's transitions ([`crate::reference::shaper`]) and
+//! the time scaling of trajectories ([`crate::reference::timescale`]).
 //!
 //! # Planning
 //!

@@ -25,7 +25,7 @@
 //! A platform whose motors are all positive and uncoupled passes every value untouched.
 
 use crate::angle;
-use crate::platform::{Platform, Protocol};
+use crate::model::platform::{Platform, Protocol};
 use crate::types::MAX_WHEELS;
 use rollbase_driver::canopen::config::Role;
 use rollbase_driver::canopen::master::{BootState, DeviceFault, Event, Master, Reject};
@@ -561,8 +561,8 @@ impl Link {
     }
 }
 
-/// Most buses: [`crate::platform::MAX_BUSES`].
-const NB: usize = crate::platform::MAX_BUSES;
+/// Most buses: [`crate::model::platform::MAX_BUSES`].
+const NB: usize = crate::model::platform::MAX_BUSES;
 
 /// The links of a platform, one per bus (`wheels[i].bus`), presented with the platform's
 /// wheel indices: each bus has its own SYNC, its own setpoints and (CiA 402) its own master,

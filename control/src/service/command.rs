@@ -9,8 +9,8 @@
 //! noise from a sender's own computation is not an error). Commands beyond the actuator
 //! limits but within the sanity bound are valid: the shaper slows them down.
 
-use crate::platform::Platform;
-use crate::ports::{LegTargets, MotionCommand};
+use crate::model::platform::Platform;
+use crate::service::ports::{LegTargets, MotionCommand};
 use crate::types::{Twist, MAX_WHEELS};
 
 /// Leg targets this far (m) outside a leg's range are clamped into it; farther ones are

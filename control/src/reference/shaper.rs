@@ -81,7 +81,7 @@
 //!
 //! Any other change of the goal is a **transition**: the twist moves along the straight
 //! line q̇(β) = q̇_0 + β (q̇_g − q̇_0), β from 0 to 1 on a rest-to-rest profile
-//! ([`crate::ramp::Ramp`]: the time-optimal profile under per-point caps, able to brake at
+//! ([`crate::reference::ramp::Ramp`]: the time-optimal profile under per-point caps, able to brake at
 //! any moment). Along the line every wheel's contact velocity u_i(β) = u_i(0) + β G_i Δ is
 //! a straight line too, so the caps are exact at the grid points (refined around each
 //! wheel's closest approach to its zero):
@@ -143,7 +143,7 @@
 //! # Legs
 //!
 //! Leg targets are positions. A leg move runs from rest to rest on a quasi-trapezoidal
-//! profile ([`crate::trajectory::QuasiTrapezoid`], continuous acceleration) of the farthest
+//! profile ([`crate::reference::trajectory::QuasiTrapezoid`], continuous acceleration) of the farthest
 //! leg, the other legs moving in proportion so that all arrive together; its speed is kept
 //! where no wheel exceeds its speed share with the twist goal of the moment, and its
 //! acceleration is small (`leg_accel`, reserved out of the wheels' acceleration share). New
@@ -153,7 +153,7 @@
 //! # Singularity avoidance (when the runtime runs with it)
 //!
 //! With [`Shaper::set_avoidance`] the command is first passed through seed 001's avoidance at
-//! the velocity level ([`crate::avoidance::avoid_twist`]; derivation in [`crate::avoidance`],
+//! the velocity level ([`crate::reference::avoidance::avoid_twist`]; derivation in [`crate::reference::avoidance`],
 //! "Live commands"): a command whose ICR lies in a wheel's field becomes the twist with the
 //! same base speed whose ICR is on the field's edge. That twist is then the command for
 //! everything above, so what the avoidance changes is shaped within the limits like
@@ -173,12 +173,12 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::angle;
-use crate::avoidance::{avoid_twist, AvoidanceConfig, TwistAvoidance};
-use crate::limits::{direction_rates, HOLD_SPEED};
-use crate::platform::{Limits, Platform};
-use crate::ports::{Limiting, ShapingState};
-use crate::ramp::{Ramp, GRID};
-use crate::trajectory::QuasiTrapezoid;
+use crate::model::platform::{Limits, Platform};
+use crate::reference::avoidance::{avoid_twist, AvoidanceConfig, TwistAvoidance};
+use crate::reference::limits::{direction_rates, HOLD_SPEED};
+use crate::reference::ramp::{Ramp, GRID};
+use crate::reference::trajectory::QuasiTrapezoid;
+use crate::service::ports::{Limiting, ShapingState};
 use crate::types::{Pose, ReferenceSample, SteerReference, Twist, ZVec, MAX_WHEELS};
 use std::f64::consts::PI;
 
@@ -235,7 +235,7 @@ pub struct ShaperConfig {
     pub speed_fraction: f64,
     /// Fraction of the acceleration limits (wheel, steering) the reference may use. Default
     /// 0.6: the drives' lag compensation adds τ × jerk to the commanded acceleration
-    /// ([`crate::platform::Drives`]), and the controller's corrections need room too.
+    /// ([`crate::model::platform::Drives`]), and the controller's corrections need room too.
     pub accel_fraction: f64,
     /// Fraction of the wheel acceleration limit a stop (halt) uses. Default 1.0: a timeout or
     /// stop request brings the platform to rest as fast as its limit allows.
@@ -257,7 +257,7 @@ pub struct ShaperConfig {
     /// direction rolls sideways by that angle times its speed. Default 2 m/s²: a command
     /// stream turns in short stretches, and the tracking bounds hold at this value in the
     /// joystick and Nav2 sessions (the time scaling keeps 0.5 m/s² over a whole path,
-    /// [`crate::timescale::TimeScaleConfig`]).
+    /// [`crate::reference::timescale::TimeScaleConfig`]).
     pub lateral_accel: f64,
     /// Time (s) over which an acceleration may build up (bounds the jerk). Default 40 ms
     /// (≥ τ·f/(1 − f) for the default drive lag τ = 20 ms and accel fraction f = 0.6, so the
@@ -1052,7 +1052,7 @@ impl Shaper {
                 duration,
             } => {
                 *t = (*t + dt).min(*duration);
-                let (p, v, a, j) = crate::trajectory::eval_quintic(coef, *t);
+                let (p, v, a, j) = crate::reference::trajectory::eval_quintic(coef, *t);
                 let done = *t >= *duration;
                 (p, v, a, j, *from, *ratio, done)
             }
@@ -1083,7 +1083,7 @@ impl Shaper {
             self.legs_move = LegMove::Brake {
                 from,
                 ratio,
-                coef: crate::trajectory::quintic(p, v, a, end, 0.0, 0.0, duration),
+                coef: crate::reference::trajectory::quintic(p, v, a, end, 0.0, 0.0, duration),
                 t: 0.0,
                 duration,
             };
@@ -1786,7 +1786,7 @@ impl Shaper {
             vy: 0.5 * (prev[1] + self.qd[1]),
             omega: 0.5 * (prev[2] + self.qd[2]),
         };
-        self.pose = crate::model::se2_integrate(self.pose, &avg, dt);
+        self.pose = crate::model::kinematics::se2_integrate(self.pose, &avg, dt);
         self.t += dt;
         self.update_steering();
         self.sample()
@@ -1847,7 +1847,7 @@ impl Shaper {
                     .max(4.0 * o1.abs() / sacc)
                     .max((10.0 * o0.abs() / sacc).sqrt());
                 self.lock[i] = (
-                    crate::trajectory::quintic(o0, o1, o2, 0.0, 0.0, 0.0, dur),
+                    crate::reference::trajectory::quintic(o0, o1, o2, 0.0, 0.0, 0.0, dur),
                     0.0,
                     dur,
                 );
@@ -1858,7 +1858,7 @@ impl Shaper {
                 let (coef, t, dur) = &mut self.lock[i];
                 let (o0, o1, o2) = if *t < *dur {
                     *t = (*t + self.dt).min(*dur);
-                    let (a, b, c, _) = crate::trajectory::eval_quintic(coef, *t);
+                    let (a, b, c, _) = crate::reference::trajectory::eval_quintic(coef, *t);
                     (a, b, c)
                 } else {
                     (0.0, 0.0, 0.0)
@@ -1960,7 +1960,7 @@ pub const CONTROLLER_HOLD_SPEED: f64 = HOLD_SPEED;
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::limits::wheel_demand;
+    use crate::reference::limits::wheel_demand;
     use std::f64::consts::FRAC_PI_2;
 
     fn shaper() -> (Platform, Shaper) {
@@ -2374,8 +2374,8 @@ mod tests {
         // Steady: the ICR on the field's edge outward along the leg, the base at the
         // commanded speed, wheel 2 rolling at |θ̇| d_start.
         let v = s.velocity();
-        let ds = crate::avoidance::field_radius(&cfg, l);
-        let z = crate::avoidance::icr_from_twist(v[0], v[1], v[2]).unwrap();
+        let ds = crate::reference::avoidance::field_radius(&cfg, l);
+        let z = crate::reference::avoidance::icr_from_twist(v[0], v[1], v[2]).unwrap();
         let want = [(l + ds) * a.cos(), (l + ds) * a.sin()];
         assert!((z[0] - want[0]).abs() < 1e-12 && (z[1] - want[1]).abs() < 1e-12);
         assert!((v[0].hypot(v[1]) - cmd.vx.hypot(cmd.vy)).abs() < 1e-12);

@@ -38,7 +38,7 @@
 // Index loops over parallel per-wheel arrays read better than zipped iterators here.
 #![allow(clippy::needless_range_loop)]
 
-use crate::platform::Platform;
+use crate::model::platform::Platform;
 use crate::types::{ReferenceSample, ZVec, MAX_WHEELS, Z_MAX};
 use serde::Deserialize;
 use std::path::Path;
@@ -54,7 +54,7 @@ pub trait Trajectory: Send + Sync {
     fn n_legs(&self) -> usize;
     /// Whether the timing at `t` is given (the time scaling may only slow it down, ṡ ≤ 1)
     /// or free (next to a waypoint without a time: as fast as the limits allow,
-    /// [`crate::timescale`]). Default: given.
+    /// [`crate::reference::timescale`]). Default: given.
     fn timed_at(&self, t: f64) -> bool {
         let _ = t;
         true
@@ -65,27 +65,27 @@ pub trait Trajectory: Send + Sync {
         None
     }
     /// How fast the trajectory's clock runs at `t` and why: `Some` for a time-scaled
-    /// trajectory ([`crate::timescale::ScaledTrajectory`]).
-    fn time_scale(&self, t: f64) -> Option<crate::timescale::ScaleStatus> {
+    /// trajectory ([`crate::reference::timescale::ScaledTrajectory`]).
+    fn time_scale(&self, t: f64) -> Option<crate::reference::timescale::ScaleStatus> {
         let _ = t;
         None
     }
     /// The nominal and executed durations and the slowest scale of a time-scaled trajectory.
-    fn timing(&self) -> Option<crate::timescale::Timing> {
+    fn timing(&self) -> Option<crate::reference::timescale::Timing> {
         None
     }
     /// The path's exact stops: intervals of its time (s; equal ends for a stop at an
     /// instant) over which every component is at rest, with zero velocity and acceleration
     /// at their ends. The time scaling holds its clock there while the wheels re-steer
-    /// ([`crate::timescale`], "Stops and dwells"). Default: none known (the time scaling
+    /// ([`crate::reference::timescale`], "Stops and dwells"). Default: none known (the time scaling
     /// still finds a start and an end at rest by itself).
     fn stops(&self) -> Vec<(f64, f64)> {
         Vec::new()
     }
     /// The singularity avoidance's record at `t` when the trajectory is a path the avoidance
-    /// was applied to before the run ([`crate::avoidance::AvoidedTrajectory`]), `None`
+    /// was applied to before the run ([`crate::reference::avoidance::AvoidedTrajectory`]), `None`
     /// otherwise.
-    fn avoidance_at(&self, t: f64) -> Option<crate::avoidance::AvoidanceState> {
+    fn avoidance_at(&self, t: f64) -> Option<crate::reference::avoidance::AvoidanceState> {
         let _ = t;
         None
     }
@@ -437,7 +437,7 @@ pub struct Waypoint {
 
 /// A waypoint whose time may be left open (`t = None`): the segments next to it get no
 /// given duration, and the time scaling runs them as fast as the actuator limits allow
-/// ([`crate::timescale`]).
+/// ([`crate::reference::timescale`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct WaypointSpec {
     /// Time (s from the trajectory start), or `None`.
@@ -522,7 +522,7 @@ pub(crate) fn eval_quintic(c: &[f64; 6], tau: f64) -> (f64, f64, f64, f64) {
 
 /// Latest waypoint time (s): 10 h. Longer runs are split into several trajectories; the
 /// runtime plans and checks every control period of a trajectory before it starts
-/// ([`crate::timescale`]), which stays within seconds up to this length.
+/// ([`crate::reference::timescale`]), which stays within seconds up to this length.
 pub const MAX_WAYPOINT_TIME_S: f64 = 36_000.0;
 
 /// Shortest time between two waypoints (s): 10 ms, shorter than any segment the platform can

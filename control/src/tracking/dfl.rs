@@ -82,8 +82,8 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::angle;
-use crate::model::{steer_from_velocity, wheel_acceleration_body, wheel_velocity_body};
-use crate::platform::Platform;
+use crate::model::kinematics::{steer_from_velocity, wheel_acceleration_body, wheel_velocity_body};
+use crate::model::platform::Platform;
 use crate::types::{Command, Measurement, Pose, ReferenceSample, Twist, ZVec, MAX_WHEELS, Z_MAX};
 use nalgebra::SMatrix;
 
@@ -186,7 +186,7 @@ pub fn desaturate(cmd: &mut Command, ratio: f64) -> bool {
 
 /// Wheels that follow the reference's steering angle instead of their direction of travel:
 /// with a steering reference, those whose reference contact speed is below
-/// [`crate::limits::HOLD_SPEED`] (a wheel the ICR rests on, a platform at rest or aligning).
+/// [`crate::reference::limits::HOLD_SPEED`] (a wheel the ICR rests on, a platform at rest or aligning).
 /// Without one, none (the controllers' own rules apply).
 pub fn held_wheels(p: &Platform, r: &ReferenceSample) -> [bool; MAX_WHEELS] {
     let mut held = [false; MAX_WHEELS];
@@ -202,18 +202,18 @@ pub fn held_wheels(p: &Platform, r: &ReferenceSample) -> [bool; MAX_WHEELS] {
         let u = wheel_velocity_body(p, i, r.z[2], r.z[3 + i], &tw, r.dz[3 + i]);
         let sp = u[0].hypot(u[1]);
         // NaN (a broken reference) holds too.
-        *h = sp.is_nan() || sp < crate::limits::HOLD_SPEED;
+        *h = sp.is_nan() || sp < crate::reference::limits::HOLD_SPEED;
     }
     held
 }
 
-/// How far above [`crate::limits::HOLD_SPEED`] (as a multiple of it) a wheel's steering
+/// How far above [`crate::reference::limits::HOLD_SPEED`] (as a multiple of it) a wheel's steering
 /// blends from the reference's angle to its own direction of travel.
 pub const HOLD_BLEND: f64 = 2.0;
 
 /// Per wheel, how much of its steering comes from its own direction of travel (1) rather
 /// than the reference's steering angle (0), with a steering reference: 0 below
-/// [`crate::limits::HOLD_SPEED`] ([`held_wheels`]), rising linearly to 1 at (1 +
+/// [`crate::reference::limits::HOLD_SPEED`] ([`held_wheels`]), rising linearly to 1 at (1 +
 /// [`HOLD_BLEND`]) × that speed of the reference's contact speed. Near rest the direction of
 /// the commanded velocity is mostly the feedback's correction, which swings without bound as
 /// the reference's speed goes to zero; the reference says where the wheel rolls. The blend
@@ -224,7 +224,7 @@ pub fn steer_weights(p: &Platform, r: &ReferenceSample) -> [f64; MAX_WHEELS] {
         return w;
     }
     let tw = r.twist_world();
-    let hold = crate::limits::HOLD_SPEED;
+    let hold = crate::reference::limits::HOLD_SPEED;
     for (i, wi) in w
         .iter_mut()
         .enumerate()
@@ -308,7 +308,7 @@ pub fn alignment_command(
         let w = &p.wheels[i];
         if w.off_centred() {
             // An off-centred wheel is never steered at rest: it would scrub its contact
-            // point sideways (crate::model, "Off-centred steering"); it turns as it rolls.
+            // point sideways (crate::model::kinematics, "Off-centred steering"); it turns as it rolls.
             continue;
         }
         let phi = m.wheels[i].steer_angle;
@@ -773,9 +773,9 @@ impl TrackingController for DflController {
 #[cfg(test)]
 pub(crate) mod harness {
     use super::*;
-    use crate::ideal_plant::IdealPlant;
-    use crate::odometry::Odometry;
-    use crate::trajectory::Trajectory;
+    use crate::estimation::odometry::Odometry;
+    use crate::model::ideal_plant::IdealPlant;
+    use crate::reference::trajectory::Trajectory;
 
     /// Measured numbers of one closed-loop run.
     #[derive(Clone, Copy, Debug, Default)]
@@ -822,8 +822,10 @@ pub(crate) mod harness {
             }
             plant.step(p, &cmd, dt);
         }
-        let mut odo =
-            Odometry::with_sampling(plant.pose(), crate::odometry::Sampling::ZeroOrderHold);
+        let mut odo = Odometry::with_sampling(
+            plant.pose(),
+            crate::estimation::odometry::Sampling::ZeroOrderHold,
+        );
         ctrl.reset(p, &r0);
         let steps = ((traj.duration() + extra) / dt).ceil() as usize;
         let mut prev_rates = [0.0; MAX_WHEELS];
@@ -897,8 +899,8 @@ pub(crate) mod harness {
 mod tests {
     use super::harness::run;
     use super::*;
-    use crate::model::wheel_setpoints;
-    use crate::trajectory::{seed000_experiment, Trajectory};
+    use crate::model::kinematics::wheel_setpoints;
+    use crate::reference::trajectory::{seed000_experiment, Trajectory};
 
     fn sample_state() -> (Platform, [f64; MAX_WHEELS], [f64; MAX_WHEELS]) {
         let p = Platform::justin();
@@ -1021,7 +1023,7 @@ mod tests {
     /// move the platform with the model's ż.
     #[test]
     fn eq20_matches_the_plant() {
-        use crate::ideal_plant::IdealPlant;
+        use crate::model::ideal_plant::IdealPlant;
         let (p, legs, rates) = sample_state();
         let k = 0;
         let theta = 0.4;

@@ -1,10 +1,12 @@
 //! Named scenarios (the demo's and `rollbase run --trajectory scenario:NAME`) and the runtime
 //! settings that go with them.
 
-use crate::avoidance::AvoidanceConfig;
-use crate::platform::Platform;
+use crate::model::platform::Platform;
+use crate::reference::avoidance::AvoidanceConfig;
+use crate::reference::trajectory::{
+    load_waypoints, seed000_experiment, Trajectory, TrajectoryError,
+};
 use crate::runtime::RuntimeConfig;
-use crate::trajectory::{load_waypoints, seed000_experiment, Trajectory, TrajectoryError};
 
 /// The built-in scenarios.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -54,7 +56,7 @@ impl std::str::FromStr for Scenario {
 pub fn trajectory(s: Scenario, p: &Platform) -> Result<Box<dyn Trajectory>, ScenarioError> {
     Ok(match s {
         Scenario::Seed000 => Box::new(seed000_experiment(p)),
-        Scenario::Seed001 => Box::new(crate::avoidance::Seed001Scenario::new(p)),
+        Scenario::Seed001 => Box::new(crate::reference::avoidance::Seed001Scenario::new(p)),
     })
 }
 
@@ -81,7 +83,7 @@ pub fn trajectory_arg(
 /// reshapes it; slowed down first it would no longer be that experiment
 /// (docs/time-scaling.md). The avoidance acts on the nominal at its own timing, and the
 /// path it makes is then time-scaled within every limit, whatever this option says
-/// ([`crate::avoidance`], "Pre-planned trajectories"); with `--avoidance off` the nominal
+/// ([`crate::reference::avoidance`], "Pre-planned trajectories"); with `--avoidance off` the nominal
 /// runs as given.
 pub fn runtime_config(s: Scenario) -> RuntimeConfig {
     let mut cfg = RuntimeConfig::default();

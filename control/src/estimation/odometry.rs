@@ -15,7 +15,7 @@
 //! consistent wheels, of the order of the slip speed when one wheel slips.
 //!
 //! A wheel without a leg has λ_i fixed and λ̇_i = 0. An off-centred wheel (caster offset
-//! d > 0, [`crate::model`], "Off-centred steering") rolls at its contact point
+//! d > 0, [`crate::model::kinematics`], "Off-centred steering") rolls at its contact point
 //! C_i = P_i − d h_i, which moves on the body as the wheel steers: the body's velocity at
 //! C_i is the rolling velocity plus the steering's sweep, v_W h_i + d φ̇_i h⊥_i, so its rows
 //! are A_i = [[1, 0, −C_iy], [0, 1, C_ix]] with b_i = v_W h_i + d φ̇_i h⊥_i − λ̇_i e_i (the
@@ -39,7 +39,7 @@
 //!   (φ_i − φ̇_i dt/2, λ_i − λ̇_i dt/2) before solving.
 //!
 //! Either way the twist is integrated exactly on SE(2) over dt
-//! ([`crate::model::se2_integrate`]).
+//! ([`crate::model::kinematics::se2_integrate`]).
 //!
 //! # Uncertainty
 //!
@@ -61,8 +61,8 @@
 // Index loops over parallel per-wheel arrays read better than zipped iterators here.
 #![allow(clippy::needless_range_loop)]
 
-use crate::model::{body_to_world, se2_integrate};
-use crate::platform::Platform;
+use crate::model::kinematics::{body_to_world, se2_integrate};
+use crate::model::platform::Platform;
 use crate::types::{Measurement, Pose, Twist, MAX_WHEELS};
 use nalgebra::{Matrix3, Vector3};
 
@@ -111,7 +111,7 @@ struct Solution {
 /// for an off-centred wheel its contact point C_i = P_i − d h_i and the steering's sweep
 /// d φ̇_i h⊥_i; `None` for a centred wheel (the rows at P_i, as seed 000).
 fn offset_rows(
-    wc: &crate::platform::WheelConfig,
+    wc: &crate::model::platform::WheelConfig,
     leg: f64,
     steer: Option<(f64, f64)>,
 ) -> Option<([f64; 2], [f64; 2])> {
@@ -121,7 +121,7 @@ fn offset_rows(
         return None;
     }
     let (sa, ca) = wc.alpha.sin_cos();
-    let c = crate::model::contact_point([leg * ca, leg * sa], phi, d);
+    let c = crate::model::kinematics::contact_point([leg * ca, leg * sa], phi, d);
     let (s, co) = phi.sin_cos();
     Some((c, [-d * rate * s, d * rate * co]))
 }
@@ -382,7 +382,7 @@ fn to_array(m: &Matrix3<f64>) -> [[f64; 3]; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::wheel_velocity_body;
+    use crate::model::kinematics::wheel_velocity_body;
     use crate::types::WheelMeasurement;
 
     fn consistent_measurement(
@@ -595,7 +595,8 @@ mod tests {
         for i in 0..4 {
             let w = &p.wheels[i];
             let u = wheel_velocity_body(&p, i, 0.0, w.lambda_nominal, &tw, 0.0);
-            let (v, rate) = crate::model::caster_inverse(u, angles[i], tw.omega, w.caster_offset);
+            let (v, rate) =
+                crate::model::kinematics::caster_inverse(u, angles[i], tw.omega, w.caster_offset);
             m.wheels[i] = WheelMeasurement {
                 steer_angle: angles[i],
                 steer_rate: rate,

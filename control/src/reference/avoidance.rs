@@ -122,10 +122,10 @@
 //!   to 1.6 µm per m/s² and 2 mm/s per m/s² (at Δt = 4 ms), it is C² (its acceleration is
 //!   piecewise linear, the filter's δ̈_k at the knots) and its jerk is piecewise constant,
 //!   (δ̈_{k+1} − δ̈_k)/Δt. Added to the nominal (C² with bounded jerk), the avoided path is C²
-//!   with bounded jerk: a path [`crate::timescale::ScaledTrajectory`] can time, and whose
+//!   with bounded jerk: a path [`crate::reference::timescale::ScaledTrajectory`] can time, and whose
 //!   derivatives the time scaling and the DFL read exactly (no numerical differentiation).
 //! * **Within every limit.** The avoided path is then time-scaled like any other
-//!   ([`crate::timescale`]): every wheel speed and acceleration, steering rate and
+//!   ([`crate::reference::timescale`]): every wheel speed and acceleration, steering rate and
 //!   acceleration and leg speed within its share, C² clock, steering references for the
 //!   wheels the ICR rests on, dwells at stops. The runtime always scales an avoided path
 //!   (with the default margins when the scaling is off): it is a path the avoidance made,
@@ -143,7 +143,7 @@
 //! # Live commands: the avoidance at the velocity level
 //!
 //! Everything above filters a *trajectory*: a reference with a pose to return to. A live
-//! command (the base service, [`crate::shaper`]) is a twist held until the next one. It
+//! command (the base service, [`crate::reference::shaper`]) is a twist held until the next one. It
 //! defines no pose, and the reference the controller follows must be C² and within every
 //! actuator limit, which the shaper guarantees for the goals it plans and for nothing added
 //! after it. Run on the shaped reference, [`Avoidance::step`] breaks both: its push and its
@@ -154,7 +154,7 @@
 //! on the pivot of tests/tests/e2e_drive.rs: 15 mm position error, steering commands at the
 //! 6 rad/s limit, the pivot wheel turning 18° while slow; 21 mm even with F_max = 0.05.) So
 //! with live commands the avoidance acts on the command, before the shaper
-//! ([`avoid_twist`], applied by [`crate::shaper::Shaper`] when the runtime has avoidance on):
+//! ([`avoid_twist`], applied by [`crate::reference::shaper::Shaper`] when the runtime has avoidance on):
 //!
 //! * **The steady state of the push.** Under a constant command, the push of eqs. 9–15 moves
 //!   the ICR along p (from the singular point to the ICR) at constant |v| until
@@ -205,7 +205,7 @@
 //!   when the command's ICR crosses a wheel it passes through the wheel itself, at the exact
 //!   roll reversal above. The shaper times every such transition within the steering limits.
 
-use crate::platform::Platform;
+use crate::model::platform::Platform;
 use crate::types::{ReferenceSample, ZVec, MAX_WHEELS};
 use nalgebra::Matrix2;
 use serde::{Deserialize, Serialize};
@@ -1069,9 +1069,9 @@ pub const MAX_RETURN_S: f64 = 20.0;
 /// "Pre-planned trajectories"): the nominal z*(t) plus the deviation δ(t) the filter
 /// [`Avoidance::step`] produces along it at the cycle period, δ interpolated by the uniform
 /// cubic B-spline whose control points are the filter's δ_k. The result is C² with bounded
-/// jerk, so [`crate::timescale::ScaledTrajectory`] can time it within every limit.
+/// jerk, so [`crate::reference::timescale::ScaledTrajectory`] can time it within every limit.
 pub struct AvoidedTrajectory {
-    inner: Box<dyn crate::trajectory::Trajectory>,
+    inner: Box<dyn crate::reference::trajectory::Trajectory>,
     platform: Platform,
     cfg: AvoidanceConfig,
     n: usize,
@@ -1105,7 +1105,7 @@ impl AvoidedTrajectory {
     /// or when the deviation has not returned [`MAX_RETURN_S`] after the end.
     pub fn plan(
         p: &Platform,
-        inner: Box<dyn crate::trajectory::Trajectory>,
+        inner: Box<dyn crate::reference::trajectory::Trajectory>,
         cfg: AvoidanceConfig,
     ) -> Result<Self, AvoidanceError> {
         let mut av = Avoidance::try_new(p, cfg)?;
@@ -1176,7 +1176,7 @@ impl AvoidedTrajectory {
     }
 
     /// The trajectory the avoidance was applied to.
-    pub fn inner(&self) -> &dyn crate::trajectory::Trajectory {
+    pub fn inner(&self) -> &dyn crate::reference::trajectory::Trajectory {
         self.inner.as_ref()
     }
 
@@ -1196,7 +1196,7 @@ impl AvoidedTrajectory {
     pub fn state_at(&self, t: f64) -> AvoidanceState {
         let k = self.knot(t);
         let tk = k as f64 * self.dt;
-        let r = crate::trajectory::Trajectory::sample(self, tk);
+        let r = crate::reference::trajectory::Trajectory::sample(self, tk);
         let nominal = self.inner.sample(tk.min(self.inner.duration()));
         let scan = scan_fields(&self.platform, &self.cfg, &r, &nominal.z);
         let i = self.active.partition_point(|&(a, _)| a <= k);
@@ -1277,7 +1277,7 @@ impl AvoidedTrajectory {
     }
 }
 
-impl crate::trajectory::Trajectory for AvoidedTrajectory {
+impl crate::reference::trajectory::Trajectory for AvoidedTrajectory {
     fn sample(&self, t: f64) -> ReferenceSample {
         let t = if t.is_finite() {
             t.clamp(0.0, self.duration)
@@ -1732,7 +1732,7 @@ pub fn icr_wheel_distances(p: &Platform, r: &ReferenceSample) -> [f64; MAX_WHEEL
     scan_fields(p, &AvoidanceConfig::default(), r, &r.z).dist
 }
 
-impl crate::trajectory::Trajectory for Seed001Scenario {
+impl crate::reference::trajectory::Trajectory for Seed001Scenario {
     fn sample(&self, t: f64) -> ReferenceSample {
         Seed001Scenario::sample(self, t)
     }
@@ -1758,7 +1758,7 @@ pub enum ControllerKind {
     Kinematic,
 }
 
-/// Runs the seed-001 experiment in lockstep on [`crate::ideal_plant::IdealPlant`] with the
+/// Runs the seed-001 experiment in lockstep on [`crate::model::ideal_plant::IdealPlant`] with the
 /// DFL controller (see [`run_experiment_with`]).
 pub fn run_experiment(p: &Platform, mode: ExperimentMode) -> ExperimentResult {
     run_experiment_with(p, mode, ControllerKind::Dfl, &experiment_config(mode))
@@ -1766,7 +1766,7 @@ pub fn run_experiment(p: &Platform, mode: ExperimentMode) -> ExperimentResult {
 
 /// Runs [`seed001_scenario`] in lockstep at the platform's cycle rate: open-loop alignment
 /// to the initial wheel angles, then per cycle nominal sample → [`Avoidance::step`] (unless
-/// `mode` is `Off`) → controller → [`crate::ideal_plant::IdealPlant`]. Deviations are those
+/// `mode` is `Off`) → controller → [`crate::model::ideal_plant::IdealPlant`]. Deviations are those
 /// the avoidance commands (modified reference against the nominal one); the plant's own
 /// tracking error against the modified reference (position and legs) is reported separately
 /// in `max_tracking_error`. `peak_steer_rate` is the analytic steering rate the (modified)
@@ -1777,9 +1777,11 @@ pub fn run_experiment_with(
     controller: ControllerKind,
     cfg: &AvoidanceConfig,
 ) -> ExperimentResult {
-    use crate::dfl::{alignment_command, ControlInput, DflController, TrackingController};
-    use crate::ideal_plant::IdealPlant;
-    use crate::kinematic::KinematicController;
+    use crate::model::ideal_plant::IdealPlant;
+    use crate::tracking::dfl::{
+        alignment_command, ControlInput, DflController, TrackingController,
+    };
+    use crate::tracking::kinematic::KinematicController;
     let scenario = seed001_scenario(p);
     let dt = p.dt();
     let n = p.n().min(MAX_WHEELS);
@@ -1998,8 +2000,8 @@ mod tests {
 
     #[test]
     fn far_from_singular_gives_identical_commands_on_and_off() {
-        use crate::dfl::{ControlInput, DflController};
-        use crate::ideal_plant::IdealPlant;
+        use crate::model::ideal_plant::IdealPlant;
+        use crate::tracking::dfl::{ControlInput, DflController};
         let p = Platform::justin();
         // ICR circling at 0.2 m: never inside a field (they start at 0.465 − 0.14 m).
         let sc = Seed001Scenario::with(&p, 0.2, 1.0, 3.0);
@@ -2157,7 +2159,7 @@ mod tests {
 
     #[test]
     fn an_avoided_path_that_never_enters_a_field_is_the_nominal_bit_for_bit() {
-        use crate::trajectory::Trajectory;
+        use crate::reference::trajectory::Trajectory;
         let p = Platform::justin();
         // ICR circling at 0.2 m: never inside a field.
         let sc = Seed001Scenario::with(&p, 0.2, 1.0, 3.0);
@@ -2172,7 +2174,7 @@ mod tests {
 
     #[test]
     fn the_avoided_path_is_the_filters_output_c2_and_returns_to_the_goal() {
-        use crate::trajectory::Trajectory;
+        use crate::reference::trajectory::Trajectory;
         let p = Platform::justin();
         let dt = p.dt();
         let sc = Seed001Scenario::new(&p);
@@ -2255,8 +2257,8 @@ mod tests {
 
     #[test]
     fn the_time_scaled_avoided_path_keeps_the_icr_where_the_avoidance_put_it() {
-        use crate::timescale::{ScaledTrajectory, TimeScaleConfig, VERIFY_TOLERANCE};
-        use crate::trajectory::Trajectory;
+        use crate::reference::timescale::{ScaledTrajectory, TimeScaleConfig, VERIFY_TOLERANCE};
+        use crate::reference::trajectory::Trajectory;
         let p = Platform::justin();
         let sc = Seed001Scenario::new(&p);
         let avoided =

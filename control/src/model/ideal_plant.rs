@@ -13,7 +13,7 @@
 //!
 //! (the body-frame contact velocity of DESIGN.md / seed 000 eq. 18, solved for the
 //! platform motion). The pose is integrated exactly on SE(2)
-//! ([`crate::model::se2_integrate`]), the legs are integrated and clamped at
+//! ([`crate::model::kinematics::se2_integrate`]), the legs are integrated and clamped at
 //! [λ_min, λ_max]; a leg pushed against its stop is held (λ̇_i = 0) and the remaining
 //! unknowns are solved again. Consistent commands give a zero residual; inconsistent
 //! ones (a wheel fighting the others) give the least-squares compromise, which is how a
@@ -26,8 +26,8 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::angle;
-use crate::model::se2_integrate;
-use crate::platform::Platform;
+use crate::model::kinematics::se2_integrate;
+use crate::model::platform::Platform;
 use crate::types::{Command, Measurement, Pose, Twist, WheelMeasurement, MAX_WHEELS, Z_MAX};
 use nalgebra::{SMatrix, SVector};
 
@@ -238,7 +238,7 @@ fn contact(alpha: f64, l: f64, tw: &Twist, rate: f64) -> [f64; 2] {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::wheel_velocity_body;
+    use crate::model::kinematics::wheel_velocity_body;
 
     /// Commands that realise body twist `tw` and leg rates `rates` at the current state.
     fn consistent(p: &Platform, plant: &IdealPlant, tw_world: &Twist, rates: &[f64]) -> Command {

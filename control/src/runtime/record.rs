@@ -131,15 +131,15 @@ pub struct CycleRecord {
     /// Timing.
     pub timing: TimingRecord,
     /// Command-port counters (live commands; zero for trajectories).
-    pub commands: crate::ports::CommandStats,
+    pub commands: crate::service::ports::CommandStats,
     /// What the shaper (or the time scaling) does with the reference.
-    pub shaping: crate::ports::ShapingState,
+    pub shaping: crate::service::ports::ShapingState,
     /// The state port's value of this cycle (what the ROS 2 node publishes; recorded as the
     /// ROS 2 topics of a bag).
-    pub base: crate::ports::BaseState,
+    pub base: crate::service::ports::BaseState,
     /// The commands the cycle took since the last record, in order (the first
     /// [`MAX_RECORDED_COMMANDS`]; see `commands_in_omitted`).
-    pub commands_in: [Option<crate::ports::CommandEvent>; MAX_RECORDED_COMMANDS],
+    pub commands_in: [Option<crate::service::ports::CommandEvent>; MAX_RECORDED_COMMANDS],
     /// Commands taken in this cycle beyond [`MAX_RECORDED_COMMANDS`] (counted, not recorded).
     pub commands_in_omitted: u32,
 }

@@ -147,7 +147,7 @@ pub struct Diagnostics {
     /// bus per second over the bit rate (0..1+); with two buses, the busier one's.
     pub bus_load: f64,
     /// The same per bus (`wheels[i].bus`; entries past the platform's buses are 0).
-    pub bus_loads: [f64; crate::platform::MAX_BUSES],
+    pub bus_loads: [f64; crate::model::platform::MAX_BUSES],
     /// Cycles whose control step finished after the next cycle's deadline (real time).
     pub deadline_misses: u64,
 }
@@ -208,7 +208,7 @@ pub struct CommandStats {
     /// (stopped, in fault or not yet armed: re-arm first).
     pub ignored: u64,
     /// Why the last rejected command was rejected.
-    pub last_rejection: Option<crate::command::Rejection>,
+    pub last_rejection: Option<crate::service::command::Rejection>,
 }
 
 /// What the shaper is doing with the live command.

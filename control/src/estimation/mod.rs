@@ -1,0 +1,3 @@
+//! State estimation: odometry with its covariance ([`odometry`]).
+
+pub mod odometry;
