@@ -37,11 +37,6 @@ pub struct SteerRange {
 }
 
 impl SteerRange {
-    /// The range of a wheel (`None` when it steers endlessly).
-    pub fn of(w: &crate::model::platform::WheelConfig) -> Option<Self> {
-        w.steer_limits().map(|(min, max)| Self { min, max })
-    }
-
     /// The range's centre.
     pub fn centre(&self) -> f64 {
         0.5 * (self.min + self.max)

@@ -2,6 +2,7 @@
 //! on the ideal kinematic plant with the DFL controller (and the kinematic controller).
 
 use rollbase_control::reference::avoidance::*;
+use rollbase_control::tracking::avoidance_experiment::*;
 use rollbase_control::Platform;
 
 fn table_row(name: &str, r: &ExperimentResult) -> String {

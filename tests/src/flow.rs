@@ -1055,7 +1055,7 @@ pub fn waypoint_tour(seed: u64, m: usize) -> Vec<WaypointSpec> {
 // Planned timing (the lead's additions to timescale.rs, through one adapter)
 // ---------------------------------------------------------------------------------------
 
-/// What a plan says about its own timing beyond [`rollbase_control::reference::timescale::Timing`].
+/// What a plan says about its own timing beyond [`rollbase_control::reference::status::Timing`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct PlanTiming {
     /// The plan's executed duration (s).
@@ -1070,7 +1070,7 @@ pub struct PlanTiming {
 }
 
 /// The plan's timing: its executed duration, the time-optimal timing of the path's motions
-/// ([`rollbase_control::reference::timescale::Timing::optimal_duration_s`]: the passes' timing before the
+/// ([`rollbase_control::reference::status::Timing::optimal_duration_s`]: the passes' timing before the
 /// jerk smoothing), the dwells in all and each dwell's executed-time interval
 /// ([`ScaledTrajectory::dwells`]).
 pub fn plan_timing(plan: &ScaledTrajectory) -> PlanTiming {

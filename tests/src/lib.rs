@@ -117,7 +117,7 @@ pub struct RunOutcome {
     pub final_state: Option<rollbase_control::service::ports::BaseState>,
     /// The timing of a time-scaled trajectory as the core planned it (`None` for live
     /// commands or an unscaled trajectory).
-    pub timing: Option<rollbase_control::reference::timescale::Timing>,
+    pub timing: Option<rollbase_control::reference::status::Timing>,
 }
 
 /// Simulated time the devices run on after the controller's last cycle.

@@ -4,7 +4,7 @@
 //! against the executed (scaled) reference; every command sent is within its speed and
 //! acceleration limits ([`rollbase_control::reference::limits::check_command`]) on every cycle.
 
-use rollbase_control::reference::timescale::Timing;
+use rollbase_control::reference::status::Timing;
 use rollbase_control::reference::trajectory::{QuinticSpline, Trajectory, WaypointSpec};
 use rollbase_control::runtime::record::CycleRecord;
 use rollbase_control::runtime::scenario::Scenario;

@@ -308,6 +308,13 @@ impl WheelConfig {
     pub fn steer_limits(&self) -> Option<(f64, f64)> {
         self.steer_range.map(|[a, b]| (a, b))
     }
+
+    /// The steering range as an [`angle::SteerRange`](crate::angle::SteerRange); `None` when
+    /// endless.
+    pub fn steering_range(&self) -> Option<crate::angle::SteerRange> {
+        self.steer_limits()
+            .map(|(min, max)| crate::angle::SteerRange { min, max })
+    }
 }
 
 /// Actuator limits, per wheel module.

@@ -43,6 +43,16 @@ use crate::model::platform::{Limits, Platform};
 use crate::service::ports::Limiting;
 use crate::types::{Command, ReferenceSample, MAX_WHEELS};
 
+/// Fraction of the speed-type limits (wheel speed, steering rate, leg speed) a reference may
+/// use by default, the rest being the tracking controller's headroom: one margin for the
+/// live-command shaper (`ShaperConfig::speed_fraction`) and the time scaling of a
+/// pre-planned path (`TimeScaleConfig::speed_fraction`).
+pub const DEFAULT_SPEED_FRACTION: f64 = 0.9;
+
+/// Time (s) over which a reference's acceleration may build up by default (bounds the jerk),
+/// shared by the shaper and the time scaling like [`DEFAULT_SPEED_FRACTION`].
+pub const DEFAULT_JERK_TIME: f64 = 0.04;
+
 /// Contact speed (m/s) below which a wheel holds its steering angle: its direction of travel
 /// is not defined well enough to steer by (1 cm/s: ten steps of the native protocol's wheel
 /// speed at r = 0.085 m, and the threshold of the chatter measure).

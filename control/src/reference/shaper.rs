@@ -175,7 +175,9 @@
 use crate::angle;
 use crate::model::platform::{Limits, Platform};
 use crate::reference::avoidance::{avoid_twist, AvoidanceConfig, TwistAvoidance};
-use crate::reference::limits::{direction_rates, HOLD_SPEED};
+use crate::reference::limits::{
+    direction_rates, DEFAULT_JERK_TIME, DEFAULT_SPEED_FRACTION, HOLD_SPEED,
+};
 use crate::reference::ramp::{Ramp, GRID};
 use crate::reference::trajectory::QuasiTrapezoid;
 use crate::service::ports::{Limiting, ShapingState};
@@ -289,14 +291,14 @@ pub struct ShaperConfig {
 impl Default for ShaperConfig {
     fn default() -> Self {
         Self {
-            speed_fraction: 0.9,
+            speed_fraction: DEFAULT_SPEED_FRACTION,
             accel_fraction: 0.6,
             stop_accel_fraction: 1.0,
             align_tolerance: 1.5f64.to_radians(),
             far_angle: 180.0f64.to_radians(),
             flip_hysteresis: 0.3,
             lateral_accel: 2.0,
-            jerk_time: 0.04,
+            jerk_time: DEFAULT_JERK_TIME,
             stop_jerk_time: 0.02,
             leg_tolerance: 1e-4,
             leg_accel: 0.4,

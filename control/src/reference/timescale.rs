@@ -162,7 +162,10 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::model::platform::Platform;
-use crate::reference::limits::{contact_kinematics, direction_rates, HOLD_SPEED};
+use crate::reference::limits::{
+    contact_kinematics, direction_rates, DEFAULT_JERK_TIME, DEFAULT_SPEED_FRACTION, HOLD_SPEED,
+};
+use crate::reference::status::{ScaleStatus, Timing};
 use crate::reference::trajectory::{eval_quintic, quintic, Trajectory};
 use crate::service::ports::Limiting;
 use crate::types::{ReferenceSample, SteerReference, MAX_WHEELS};
@@ -236,26 +239,23 @@ pub struct TimeScaleConfig {
 }
 
 impl Default for TimeScaleConfig {
+    /// The margins shared with the live-command shaper (its speed fraction and jerk time,
+    /// [`DEFAULT_SPEED_FRACTION`] and [`DEFAULT_JERK_TIME`]: one description of how much of
+    /// each speed limit a reference may use and how fast its accelerations may build up), with
+    /// the scaling's own defaults for the rest.
     fn default() -> Self {
-        Self::from_shaper(&crate::reference::shaper::ShaperConfig::default())
-    }
-}
-
-impl TimeScaleConfig {
-    /// The margins shared with the live-command shaper (its speed fraction and jerk time:
-    /// one description of how much of each speed limit a reference may use and how fast its
-    /// accelerations may build up), with the scaling's own defaults for the rest.
-    pub fn from_shaper(s: &crate::reference::shaper::ShaperConfig) -> Self {
         Self {
-            speed_fraction: s.speed_fraction,
+            speed_fraction: DEFAULT_SPEED_FRACTION,
             accel_fraction: 0.5,
-            jerk_time: s.jerk_time,
+            jerk_time: DEFAULT_JERK_TIME,
             hold_ratio: 0.02,
             free_scale_cap: 4.0,
             lateral_accel: 0.5,
         }
     }
+}
 
+impl TimeScaleConfig {
     fn validate(&self) -> Result<(), TimeScaleError> {
         let check = |field: &'static str, v: f64, lo: f64, hi: f64| {
             if v.is_finite() && v > lo && v <= hi {
@@ -275,46 +275,6 @@ impl TimeScaleConfig {
         check("free_scale_cap", self.free_scale_cap, 0.0, 100.0)?;
         check("lateral_accel", self.lateral_accel, 0.0, 1000.0)
     }
-}
-
-/// How fast the clock of a scaled trajectory runs at one instant, and why.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct ScaleStatus {
-    /// ṡ = dτ/dt (1 = as planned; below 1 slowed down; above 1 only where the timing is free).
-    pub scale: f64,
-    /// The limit closest to its share there, when the clock runs slower than its cap
-    /// (`Limiting::None` otherwise).
-    pub limiting: Limiting,
-    /// The wheel (0-based) of `limiting`.
-    pub wheel: usize,
-}
-
-/// The timing of a scaled trajectory, for summaries.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Timing {
-    /// Duration of the trajectory as given (s).
-    pub nominal_duration_s: f64,
-    /// Duration of the scaled trajectory (s), its dwells included.
-    pub executed_duration_s: f64,
-    /// Duration of the time-optimal timing of the path's motions (s): the passes' timing
-    /// before the jerk smoothing, without the dwells ([`Timing::dwell_s`]).
-    pub optimal_duration_s: f64,
-    /// Planned dwells in all (s): the clock held at the path's stops while the wheels
-    /// re-steer ([`ScaledTrajectory::dwells`]).
-    pub dwell_s: f64,
-    /// Smallest ṡ.
-    pub min_scale: f64,
-    /// Executed time (s) of the smallest ṡ.
-    pub min_scale_at_s: f64,
-    /// What limits the motion there.
-    pub limiting: Limiting,
-    /// Its wheel (0-based).
-    pub wheel: usize,
-    /// Largest demand over its share f·limit found by the verification (≤ 1 + the
-    /// tolerance unless the repairs ran out).
-    pub max_ratio: f64,
-    /// The samples carry a steering reference (a wheel the ICR rests on while moving).
-    pub steer_reference: bool,
 }
 
 /// What no timing can fix, or an option out of range.
@@ -2410,7 +2370,7 @@ impl Trajectory for ScaledTrajectory {
     fn timing(&self) -> Option<Timing> {
         Some(self.timing)
     }
-    fn avoidance_at(&self, t: f64) -> Option<crate::reference::avoidance::AvoidanceState> {
+    fn avoidance_at(&self, t: f64) -> Option<crate::reference::status::AvoidanceState> {
         // The avoided path's record at the path time the clock has reached.
         self.inner.avoidance_at(self.clock(t).0)
     }

@@ -66,12 +66,12 @@ pub trait Trajectory: Send + Sync {
     }
     /// How fast the trajectory's clock runs at `t` and why: `Some` for a time-scaled
     /// trajectory ([`crate::reference::timescale::ScaledTrajectory`]).
-    fn time_scale(&self, t: f64) -> Option<crate::reference::timescale::ScaleStatus> {
+    fn time_scale(&self, t: f64) -> Option<crate::reference::status::ScaleStatus> {
         let _ = t;
         None
     }
     /// The nominal and executed durations and the slowest scale of a time-scaled trajectory.
-    fn timing(&self) -> Option<crate::reference::timescale::Timing> {
+    fn timing(&self) -> Option<crate::reference::status::Timing> {
         None
     }
     /// The path's exact stops: intervals of its time (s; equal ends for a stop at an
@@ -85,7 +85,7 @@ pub trait Trajectory: Send + Sync {
     /// The singularity avoidance's record at `t` when the trajectory is a path the avoidance
     /// was applied to before the run ([`crate::reference::avoidance::AvoidedTrajectory`]), `None`
     /// otherwise.
-    fn avoidance_at(&self, t: f64) -> Option<crate::reference::avoidance::AvoidanceState> {
+    fn avoidance_at(&self, t: f64) -> Option<crate::reference::status::AvoidanceState> {
         let _ = t;
         None
     }

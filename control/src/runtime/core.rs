@@ -13,7 +13,8 @@ use crate::reference::shaper::Shaper;
 use crate::reference::trajectory::Trajectory;
 use crate::runtime::link::{Buses, Update, WheelFault};
 use crate::runtime::record::{AvoidanceRecord, CycleRecord, FrameRecord, MAX_RECORDED_COMMANDS};
-use crate::service::command::{check_legs, check_motion, Rejection};
+use crate::service::command::{check_legs, check_motion};
+use crate::service::ports::Rejection;
 use crate::service::ports::{
     BaseState, CommandEvent, CommandKind, CommandStats, JointState, Limiting, ModuleDiagnostics,
     OdometryState, ShapingState,
@@ -499,7 +500,7 @@ impl CycleCore {
     }
 
     /// Receive statistics (accepted and rejected frames by kind; see
-    /// [`Link::rx_stats`] for the CiA 402 profile's mapping).
+    /// [`Link::rx_stats`](crate::runtime::link::Link::rx_stats) for the CiA 402 profile's mapping).
     pub fn rx_stats(&self) -> &rollbase_driver::rx::RxStats {
         self.link.rx_stats()
     }
@@ -557,7 +558,7 @@ impl CycleCore {
     /// The timing of the trajectory being followed when it is time-scaled: nominal and
     /// executed durations, the slowest scale and why (`None` for live commands or an
     /// unscaled trajectory).
-    pub fn trajectory_timing(&self) -> Option<crate::reference::timescale::Timing> {
+    pub fn trajectory_timing(&self) -> Option<crate::reference::status::Timing> {
         match &self.source {
             Source::Trajectory(s) => s.traj.timing(),
             Source::Live(_) => None,
@@ -582,7 +583,7 @@ impl CycleCore {
     /// again by the module and faults the platform again.
     ///
     /// With the CiA 402 profile the master first boots (again) every device that is not
-    /// running and clears the devices' latched faults ([`Link::rearm`]); the supervisor arms
+    /// running and clears the devices' latched faults ([`Link::rearm`](crate::runtime::link::Link::rearm)); the supervisor arms
     /// when all devices run ([`CycleCore::arm_pending`] until then), or faults naming the
     /// device when one cannot be booted. Returns false when the state does not allow arming.
     pub fn arm(&mut self) -> bool {
@@ -862,7 +863,7 @@ impl CycleCore {
                     // Within a steering range the angle is kept inside it, turn by turn
                     // (crate::angle::SteerRange): from the reading nearest the range's
                     // centre, then by continuity.
-                    let angle = match crate::angle::SteerRange::of(&self.platform.wheels[wheel]) {
+                    let angle = match self.platform.wheels[wheel].steering_range() {
                         None => angle,
                         Some(r) => {
                             let a = match self.steer_turns[wheel] {

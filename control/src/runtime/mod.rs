@@ -13,7 +13,7 @@
 //! [`CycleCore`] is the whole cycle minus IO and clocks: [`CycleCore::start_cycle`] returns the
 //! SYNC frame, [`CycleCore::on_frame`] takes every received frame, and
 //! [`CycleCore::finish_cycle`] runs the control step and returns the setpoint frames and the
-//! cycle's [`CycleRecord`]. It never allocates after construction.
+//! cycle's [`CycleRecord`](record::CycleRecord). It never allocates after construction.
 //!
 //! [`run_lockstep`] drives the core and a simulated bus peer (the simulator) on virtual time:
 //! deterministic and as fast as the CPU allows. [`run_realtime`] drives it from a cycle thread
@@ -21,10 +21,11 @@
 //! SCHED_FIFO and locked memory, and hands records to a recorder over a bounded channel with
 //! `try_send` (a full channel drops the record and counts it: the cycle never blocks on IO).
 //!
-//! The module is split by job: [`core`] (the cycle without IO), [`link`] (the cycle's wire
-//! side, native or CiA 402), [`lockstep`] (virtual time), [`realtime`] (the cycle thread),
-//! [`record`] (the per-cycle record), [`summary`] (the figures of a run) and [`scenario`]
-//! (the named runs: trajectory and configuration together).
+//! The module is split by job: `core` (the cycle without IO), [`link`] (the cycle's wire
+//! side, native or CiA 402), `lockstep` (virtual time), `realtime` (the cycle thread),
+//! [`record`] (the per-cycle record), `summary` (the figures of a run) and [`scenario`]
+//! (the named runs: trajectory and configuration together); the items of the private
+//! modules are re-exported here.
 
 mod core;
 pub mod link;

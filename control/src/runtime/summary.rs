@@ -50,7 +50,7 @@ pub struct RunSummary {
     /// Valid commands ignored because the platform was not following commands.
     pub ignored_commands: u64,
     /// Largest angle between the reference's and the executed direction of travel (base
-    /// frame) while both moved faster than [`DIRECTION_MIN_SPEED`] and the platform tracked
+    /// frame) while both moved faster than `DIRECTION_MIN_SPEED` (0.05 m/s) and the platform tracked
     /// (rad).
     pub max_direction_error_rad: f64,
     /// Longest time from a command timeout or stop request to the commanded wheels at rest
@@ -59,7 +59,7 @@ pub struct RunSummary {
     /// The trajectory's time scaling ([`crate::reference::timescale`]): nominal and executed durations,
     /// the slowest scale and what limits it there (`None`: live commands or an unscaled
     /// trajectory). Set by the caller from [`super::CycleCore::trajectory_timing`].
-    pub timing: Option<crate::reference::timescale::Timing>,
+    pub timing: Option<crate::reference::status::Timing>,
     /// The pose estimate (odometry) of the last cycle: where the platform ended up, as the
     /// driver knows it (`None` before the first cycle).
     pub final_pose: Option<crate::types::Pose>,

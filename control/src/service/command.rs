@@ -10,60 +10,12 @@
 //! limits but within the sanity bound are valid: the shaper slows them down.
 
 use crate::model::platform::Platform;
-use crate::service::ports::{LegTargets, MotionCommand};
+use crate::service::ports::{LegTargets, MotionCommand, Rejection};
 use crate::types::{Twist, MAX_WHEELS};
 
 /// Leg targets this far (m) outside a leg's range are clamped into it; farther ones are
 /// rejected.
 pub const LEG_RANGE_SLACK: f64 = 1e-3;
-
-/// Why a command was rejected.
-#[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
-pub enum Rejection {
-    /// A value is NaN or infinite.
-    #[error("command field `{field}` is {value}: every value must be a finite number")]
-    NonFinite {
-        /// The field (`vx`, `vy`, `omega`, `legs[i]`).
-        field: &'static str,
-        /// The value.
-        value: f64,
-    },
-    /// A twist component is beyond the sanity bound.
-    #[error("command field `{field}` = {value} is beyond the sanity bound ±{bound} (`service.{setting}` in the platform file): refused, not shaped; check the sender")]
-    Beyond {
-        /// The field.
-        field: &'static str,
-        /// The value.
-        value: f64,
-        /// The bound.
-        bound: f64,
-        /// The platform-file setting that holds the bound.
-        setting: &'static str,
-    },
-    /// Wrong number of leg targets.
-    #[error("command gives {given} leg targets but the platform has {expected} legs")]
-    LegCount {
-        /// Targets given.
-        given: usize,
-        /// Legs on the platform.
-        expected: usize,
-    },
-    /// Leg targets for a platform whose wheels have no legs (a fixed footprint).
-    #[error("command gives leg targets but the platform has no legs (every wheel is mounted at a fixed `lambda`): send motion commands without legs")]
-    NoLegs,
-    /// A leg target outside the leg's range.
-    #[error("command leg {} target {value} m is outside the leg's range [{min}, {max}] m", leg + 1)]
-    LegRange {
-        /// Leg index (0-based).
-        leg: usize,
-        /// The target.
-        value: f64,
-        /// Range minimum.
-        min: f64,
-        /// Range maximum.
-        max: f64,
-    },
-}
 
 fn finite(field: &'static str, v: f64) -> Result<(), Rejection> {
     if v.is_finite() {

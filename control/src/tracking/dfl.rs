@@ -244,7 +244,7 @@ pub fn steer_weights(p: &Platform, r: &ReferenceSample) -> [f64; MAX_WHEELS] {
 /// Steering-rate command of a held wheel ([`held_wheels`]): the reference's steering rate
 /// plus `steer_kp` × the angle error.
 pub fn held_steer_rate(p: &Platform, r: &ReferenceSample, i: usize, phi_meas: f64) -> f64 {
-    let range = p.wheels.get(i).and_then(angle::SteerRange::of);
+    let range = p.wheels.get(i).and_then(|w| w.steering_range());
     let e = angle::steer_error(range, r.steer.angle[i], phi_meas);
     let v = r.steer.rate[i] + p.gains.steer_kp * if e.is_finite() { e } else { 0.0 };
     if v.is_finite() {
@@ -312,7 +312,7 @@ pub fn alignment_command(
             continue;
         }
         let phi = m.wheels[i].steer_angle;
-        let range = angle::SteerRange::of(w);
+        let range = w.steering_range();
         let err = match range {
             None => angle::diff(target, phi),
             // Within a range: the turn of the target (or, with no steering reference, of the
@@ -680,7 +680,7 @@ impl DflController {
             let rate = if held[j] {
                 held_steer_rate(p, r, j, phis[j])
             } else {
-                let range = angle::SteerRange::of(&p.wheels[j]);
+                let range = p.wheels[j].steering_range();
                 let own = coordinated_steer_in(range, u0, du, phis[j], g.steer_kp).0;
                 let wj = weight[j];
                 if wj < 1.0 {

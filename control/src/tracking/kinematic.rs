@@ -94,7 +94,7 @@ pub fn caster_command(
     } else {
         *leading = false;
     }
-    if let Some(r) = angle::SteerRange::of(w) {
+    if let Some(r) = w.steering_range() {
         // Never into a stop: the rate towards it is at most kp × the angle left.
         if rate > 0.0 {
             rate = rate.min(kp * (r.max - phi).max(0.0));
@@ -278,7 +278,7 @@ impl KinematicController {
                 .filter(|&i| moving[i])
                 .map(|i| {
                     angle::steer_error(
-                        angle::SteerRange::of(&p.wheels[i]),
+                        p.wheels[i].steering_range(),
                         target[i] + off,
                         m.wheels[i].steer_angle,
                     )
@@ -299,7 +299,7 @@ impl KinematicController {
                 continue;
             }
             let phi = m.wheels[i].steer_angle;
-            let range = angle::SteerRange::of(&p.wheels[i]);
+            let range = p.wheels[i].steering_range();
             // With a steering reference each wheel rolls on the reference's branch (a wheel
             // whose velocity passed through zero on a line rolls backwards: its own branch).
             let (off, sign) = if r.steer.valid && moving[i] {
