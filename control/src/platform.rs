@@ -542,6 +542,19 @@ impl Platform {
             ));
         }
         let l = &self.limits;
+        c.homing
+            .validate("cia402.homing", l.steer_rate, l.steer_accel)
+            .map_err(|e| invalid(e.field, e.value, e.reason))?;
+        for (i, w) in c.wheels.iter().enumerate() {
+            if let Some(h) = w.homing {
+                h.validate(
+                    &format!("cia402.wheels[{i}].homing"),
+                    l.steer_rate,
+                    l.steer_accel,
+                )
+                .map_err(|e| invalid(e.field, e.value, e.reason))?;
+            }
+        }
         for (field, units, limit, name) in [
             ("cia402.drive", c.drive, l.wheel_speed, "limits.wheel_speed"),
             ("cia402.steer", c.steer, l.steer_rate, "limits.steer_rate"),

@@ -48,6 +48,13 @@ pub struct RunOptions {
     /// Serialize the simulator's frames on a bus of this bit rate (`None`: every frame
     /// arrives at its send time, as the native tests always ran).
     pub sim_bitrate: Option<u32>,
+    /// The controller's platform (`None` = [`Platform::justin`] with `profile`): e.g. a
+    /// `[cia402]` table with a homing method.
+    pub platform: Option<Platform>,
+    /// How the simulated CiA 402 devices behave (the real drives' twin by default).
+    pub twin: rollbase_vcan_sim::canopen::TwinConfig,
+    /// Steering angles of the simulated platform at power-on (`None`: the simulator's).
+    pub initial_steer: Option<[f64; rollbase_control::MAX_WHEELS]>,
 }
 
 impl RunOptions {
@@ -67,6 +74,9 @@ impl RunOptions {
             waypoints: None,
             profile: Protocol::Native,
             sim_bitrate: None,
+            platform: None,
+            twin: Default::default(),
+            initial_steer: None,
         }
     }
 
@@ -103,6 +113,9 @@ pub struct RunOutcome {
     pub after_end: Vec<rollbase_driver::frame::CanFrame>,
     /// The state port's value after the last cycle (live runs).
     pub final_state: Option<rollbase_control::ports::BaseState>,
+    /// CiA 402: the optional plan steps each device did not have, as (node, index, sub),
+    /// as the master reported them at the end.
+    pub final_skipped: Vec<(u8, u16, u8)>,
 }
 
 /// Simulated time the devices run on after the controller's last cycle.
@@ -111,7 +124,7 @@ pub const AFTER_END: std::time::Duration = std::time::Duration::from_millis(500)
 /// Builds the controller core, the simulator and the virtual bus for `opts` (the core is not
 /// armed yet); also returns the trajectory's duration (s).
 pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstepBus, f64), String> {
-    let mut platform = Platform::justin();
+    let mut platform = opts.platform.clone().unwrap_or_else(Platform::justin);
     platform.protocol = opts.profile;
     let traj: Box<dyn rollbase_control::trajectory::Trajectory> = match &opts.waypoints {
         Some(w) => Box::new(
@@ -126,9 +139,13 @@ pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstep
         CycleCore::new(platform.clone(), traj, opts.runtime.clone()).map_err(|e| e.to_string())?;
     let mut sim_p = opts.sim_platform.clone().unwrap_or(platform);
     sim_p.protocol = opts.profile;
-    let initial = opts
+    let mut initial = opts
         .start_at_reference
         .then(|| rollbase_vcan_sim::InitialState::from_reference(&sim_p, &r0));
+    if let Some(steer) = opts.initial_steer {
+        let s = initial.get_or_insert_with(|| rollbase_vcan_sim::InitialState::nominal(&sim_p));
+        s.steer = steer;
+    }
     let sim = Simulator::with_config(
         &sim_p,
         SimConfig {
@@ -137,6 +154,7 @@ pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstep
             initial,
             seed: opts.seed,
             bitrate: opts.sim_bitrate,
+            twin: opts.twin.clone(),
             ..SimConfig::default()
         },
     )
@@ -186,7 +204,21 @@ pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]
         final_drive_states,
         after_end,
         final_state: None,
+        final_skipped: skipped_of(&core),
     }
+}
+
+/// The optional plan steps the CiA 402 master skipped, per device (node, index, sub).
+pub fn skipped_of(core: &CycleCore) -> Vec<(u8, u16, u8)> {
+    core.link()
+        .master()
+        .map(|m| {
+            m.devices()
+                .iter()
+                .flat_map(|d| d.skipped().iter().map(move |(i, s)| (d.node, *i, *s)))
+                .collect()
+        })
+        .unwrap_or_default()
 }
 
 /// Runs the options in lockstep.
@@ -351,6 +383,7 @@ pub fn run_live(
         final_drive_states: Vec::new(),
         after_end: Vec::new(),
         final_state: Some(*core.base_state()),
+        final_skipped: skipped_of(&core),
     }
 }
 

@@ -66,15 +66,51 @@ fn seed000_dfl_tracks_through_the_cia402_profile_within_the_native_bounds() {
     let csv =
         tx(&|f| (0x601..=0x608).contains(&f.id()) && f.data()[..5] == [0x2F, 0x60, 0x60, 0, 9]);
     assert_eq!(csv.len(), 8);
-    // No SDO was aborted.
-    let aborts = boot
+    // The only SDO aborts are "object does not exist" for the optional steps the devices
+    // lack (the encoders' TPDO3/4, the rolling drives' gear ratio 0x6091), each skipped and
+    // reported by the master.
+    let aborts: Vec<(u16, u16, u8, u32)> = boot
         .iter()
         .flat_map(|r| r.rx[..r.n_rx].iter())
         .filter(|f| (0x581..=0x58C).contains(&f.id) && f.data[0] == 0x80)
-        .count();
-    assert_eq!(aborts, 0);
-    println!("boot: {armed} cycles ({} ms)", armed * 4);
-    assert!(armed < 50, "boot and configuration took {armed} cycles");
+        .map(|f| {
+            let d = f.data;
+            (
+                f.id - 0x580,
+                u16::from_le_bytes([d[1], d[2]]),
+                d[3],
+                u32::from_le_bytes([d[4], d[5], d[6], d[7]]),
+            )
+        })
+        .collect();
+    assert_eq!(aborts.len(), 16, "{aborts:?}");
+    assert!(aborts.iter().all(|a| a.3 == 0x0602_0000), "{aborts:?}");
+    for a in &aborts {
+        let skipped = out
+            .final_skipped
+            .iter()
+            .any(|(n, ix, sub)| *n == a.0 as u8 && *ix == a.1 && *sub == a.2);
+        assert!(skipped, "{a:?} not reported as skipped");
+    }
+    // Boot and configuration end with the last NMT start; the arm follows once every
+    // steering drive is homed and turned to its rest angle.
+    let configured = boot
+        .iter()
+        .rposition(|r| {
+            r.tx[..r.n_tx]
+                .iter()
+                .any(|f| f.id == 0 && f.len == 2 && f.data[0] == 0x01)
+        })
+        .expect("NMT start");
+    println!(
+        "boot: configured in {configured} cycles ({} ms), armed after {armed} cycles ({} ms, homing included)",
+        configured * 4,
+        armed * 4
+    );
+    assert!(
+        configured < 50,
+        "boot and configuration took {configured} cycles"
+    );
 
     // Steady state while tracking: per cycle one SYNC and one RPDO1 per drive out, one
     // TPDO1 per device in.
@@ -375,7 +411,9 @@ fn drives_stop_on_their_own_when_the_master_dies_and_report_it() {
 
 /// After a crash (the drives faulted on their own, as above) a new controller process takes
 /// over the same bus: it resets and configures every device again, clears the drives'
-/// communication-loss faults with the fault reset of arming, and drives the platform again.
+/// communication-loss faults with the fault reset of arming, homes every steering drive
+/// again (a new master cannot know where their counters stand), and drives the platform
+/// again.
 #[test]
 fn a_restarted_controller_clears_the_communication_loss_faults_and_drives_again() {
     let opts = RunOptions::new(Scenario::Seed000).cia402();
@@ -418,7 +456,8 @@ fn a_restarted_controller_clears_the_communication_loss_faults_and_drives_again(
     let (mut core, _, _, _) = build(&opts2).expect("setup");
     core.arm();
     let mut records = Vec::new();
-    for _ in 0..1000 {
+    let mut tracking_since = None;
+    for k in 0..4000 {
         lockstep_cycle(
             &mut st,
             &mut core,
@@ -427,6 +466,12 @@ fn a_restarted_controller_clears_the_communication_loss_faults_and_drives_again(
             &mut StepHooks::default(),
         );
         records.push(*core.record());
+        if core.state() == SupervisorState::Tracking {
+            tracking_since.get_or_insert(k);
+        }
+        if tracking_since.is_some_and(|s| k > s + 500) {
+            break;
+        }
     }
     let states: Vec<SupervisorState> = records.iter().map(|r| r.state).collect();
     assert!(
@@ -439,7 +484,9 @@ fn a_restarted_controller_clears_the_communication_loss_faults_and_drives_again(
         .position(|r| r.state == SupervisorState::Tracking)
         .expect("tracking again");
     println!("restart: tracking {tracking} cycles after the new process armed");
-    assert!(tracking < 500, "tracking after {tracking} cycles");
+    // Boot, fault reset, homing (each steering axis turns to its switch at 0.5 rad/s, at
+    // most half a turn: 6.3 s) and the turn to the rest angles.
+    assert!(tracking < 2000, "tracking after {tracking} cycles");
     assert!(drives(&sim)
         .iter()
         .all(|s| *s == ds402::State::OperationEnabled));

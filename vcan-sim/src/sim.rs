@@ -70,6 +70,9 @@ pub struct SimConfig {
     /// length in bits ([`rollbase_driver::busload::frame_bits`]); the controller's own frames
     /// are not modelled.
     pub bitrate: Option<u32>,
+    /// How the CiA 402 profile's devices behave where real drives differ from an ideal
+    /// device (incremental steering counters, home switches, informational EMCYs …).
+    pub twin: crate::canopen::TwinConfig,
 }
 
 impl Default for SimConfig {
@@ -83,6 +86,7 @@ impl Default for SimConfig {
             response_latency: Duration::from_micros(300),
             seed: 1,
             bitrate: None,
+            twin: crate::canopen::TwinConfig::default(),
         }
     }
 }
@@ -245,7 +249,7 @@ impl Simulator {
             Protocol::Cia402 => Modules::CanOpen(
                 cia402
                     .devices()
-                    .map(|(w, r, _)| Device::new(&cia402, w, r, cfg.firmware.boot_time))
+                    .map(|(w, r, _)| Device::new(&cia402, w, r, cfg.firmware.boot_time, &cfg.twin))
                     .collect(),
             ),
         };
