@@ -116,6 +116,8 @@ pub struct RunOutcome {
     /// CiA 402: the optional plan steps each device did not have, as (node, index, sub),
     /// as the master reported them at the end.
     pub final_skipped: Vec<(u8, u16, u8)>,
+    /// The simulator's true steering angles after the last cycle (rad).
+    pub final_truth_steer: [f64; rollbase_control::MAX_WHEELS],
 }
 
 /// Simulated time the devices run on after the controller's last cycle.
@@ -182,6 +184,7 @@ pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]
             sink(r, w);
         },
     );
+    let truth_steer = sim.truth().steer;
     let end = sim.now();
     sim.advance_to(end + AFTER_END);
     let mut after_end = Vec::new();
@@ -205,6 +208,7 @@ pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]
         after_end,
         final_state: None,
         final_skipped: skipped_of(&core),
+        final_truth_steer: truth_steer,
     }
 }
 
@@ -323,6 +327,12 @@ pub struct LiveOptions {
     pub initial: Option<rollbase_vcan_sim::InitialState>,
     /// Give up after this many seconds of platform time.
     pub max_seconds: f64,
+    /// The platform (`None`: [`Platform::justin`] with `profile`).
+    pub platform: Option<Platform>,
+    /// Faults of the simulated devices.
+    pub faults: FaultSchedule,
+    /// How the simulated CiA 402 devices behave.
+    pub twin: rollbase_vcan_sim::canopen::TwinConfig,
 }
 
 impl Default for LiveOptions {
@@ -334,6 +344,9 @@ impl Default for LiveOptions {
             profile: Protocol::Native,
             initial: None,
             max_seconds: 120.0,
+            platform: None,
+            faults: FaultSchedule::default(),
+            twin: Default::default(),
         }
     }
 }
@@ -345,7 +358,7 @@ pub fn run_live(
     opts: &LiveOptions,
     commands: &[rollbase_control::ports::CommandEvent],
 ) -> RunOutcome {
-    let mut platform = Platform::justin();
+    let mut platform = opts.platform.clone().unwrap_or_else(Platform::justin);
     platform.protocol = opts.profile;
     let rt = opts.runtime.clone();
     let mut core = CycleCore::new_live(platform.clone(), rt).expect("valid");
@@ -356,6 +369,8 @@ pub fn run_live(
             initial: opts.initial,
             seed: opts.seed,
             bitrate: (opts.profile == Protocol::Cia402).then_some(1_000_000),
+            faults: opts.faults.clone(),
+            twin: opts.twin.clone(),
             ..SimConfig::default()
         },
     )
@@ -384,6 +399,7 @@ pub fn run_live(
         after_end: Vec::new(),
         final_state: Some(*core.base_state()),
         final_skipped: skipped_of(&core),
+        final_truth_steer: sim.truth().steer,
     }
 }
 

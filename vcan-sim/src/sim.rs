@@ -131,6 +131,8 @@ enum Modules {
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum EventKind {
     MotorFault,
+    PowerCycle,
+    Emcy(u16, u8),
     EncoderStuck,
     EncoderJump(f64),
     DriveGain(f64),
@@ -267,6 +269,18 @@ impl Simulator {
             wheel: wheel_of(m.node),
             node: m.node,
             kind: EventKind::MotorFault,
+        }));
+        events.extend(f.power_cycle.iter().map(|m| Event {
+            at: m.at,
+            wheel: wheel_of(m.node),
+            node: m.node,
+            kind: EventKind::PowerCycle,
+        }));
+        events.extend(f.emcy.iter().map(|m| Event {
+            at: m.at,
+            wheel: wheel_of(m.node),
+            node: m.node,
+            kind: EventKind::Emcy(m.code, m.register),
         }));
         events.extend(f.encoder_stuck.iter().map(|m| Event {
             at: m.at,
@@ -535,6 +549,23 @@ impl Simulator {
                         self.flush_outbox(t);
                     }
                 },
+                EventKind::PowerCycle | EventKind::Emcy(..) => {
+                    if let Modules::CanOpen(devs) = &mut self.modules {
+                        if let Some(d) = devs.iter_mut().find(|d| d.node() == ev.node) {
+                            match ev.kind {
+                                EventKind::PowerCycle => d.power_cycle(t),
+                                EventKind::Emcy(code, register) => {
+                                    let outbox = &mut self.outbox;
+                                    d.send_emcy(t, code, register, &mut |fr| {
+                                        outbox.push((ev.node, fr))
+                                    });
+                                }
+                                _ => {}
+                            }
+                        }
+                        self.flush_outbox(t);
+                    }
+                }
                 EventKind::EncoderStuck => self.plant.set_encoder_stuck(ev.wheel, true),
                 EventKind::EncoderJump(a) => self.plant.add_steer_encoder_offset(ev.wheel, a),
                 EventKind::DriveGain(g) => self.plant.set_drive_gain(ev.wheel, g),

@@ -261,7 +261,7 @@ pub enum HomingKind {
     /// there is the steering angle `steer_offset_rad`.
     DigitalInput,
     /// An absolute steering encoder: no motion; the angle read at boot is checked to lie
-    /// within half a turn of the zero.
+    /// within a turn of the zero.
     Absolute,
     /// No homing: the position counter is trusted as it is (only for drives that keep their
     /// position across power cycles; a counter at 0 after power-on is a wrong angle).
@@ -699,8 +699,16 @@ impl Cia402Config {
             }
             bytes += m.bytes();
         }
-        let (_, n) = self.status_entries();
-        if bytes > 8 || n != 1 + self.status_extra.len() {
+        let needs_inputs = (0..self.wheels.len())
+            .any(|w| self.homing_of(w).kind == HomingKind::DigitalInput)
+            && !self
+                .status_extra
+                .iter()
+                .any(|r| pdo::MapEntry::from_raw(*r).index == od::DIGITAL_INPUTS);
+        if needs_inputs {
+            bytes += 4;
+        }
+        if bytes > 8 {
             return Err(Invalid::new(
                 "cia402.status_extra",
                 format!("{} entries", self.status_extra.len()),

@@ -131,7 +131,7 @@ pub enum HomingError {
         /// The statusword.
         statusword: u16,
     },
-    /// An absolute steering encoder read an angle further than half a turn from its zero.
+    /// An absolute steering encoder read an angle further than a turn from its zero.
     AbsoluteOutOfRange {
         /// The angle read (rad, before `steer_offset_rad`).
         angle: f64,
@@ -165,7 +165,7 @@ impl std::fmt::Display for HomingError {
             ),
             Self::AbsoluteOutOfRange { angle } => write!(
                 f,
-                "the absolute steering encoder reads {angle:.3} rad from its zero, more than half a turn: is the encoder absolute, and its zero set? (homing kind \"absolute\")"
+                "the absolute steering encoder reads {angle:.3} rad from its zero, more than a turn: is the encoder absolute (single-turn at the steering axis), and its zero set? (homing kind \"absolute\")"
             ),
         }
     }
@@ -568,6 +568,8 @@ pub struct Device {
     last_pos: Option<(i32, f64, f64)>,
     last_rate: f64,
     stopped_cycles: u32,
+    home_armed: bool,
+    input_edge_at: f64,
 }
 
 impl Device {
@@ -612,6 +614,8 @@ impl Device {
             last_pos: None,
             last_rate: 0.0,
             stopped_cycles: 0,
+            home_armed: false,
+            input_edge_at: 0.0,
         }
     }
 
@@ -1114,7 +1118,7 @@ impl Master {
             if d.role == Role::Leg || d.boot != BootState::Started {
                 continue;
             }
-            let (cw, target) = match self.homing_command(i, t) {
+            let (cw, target) = match self.homing_command(i) {
                 Some(c) => c,
                 None => {
                     let sp = setpoints.get(d.wheel).copied().unwrap_or_default();
@@ -1215,6 +1219,7 @@ impl Master {
                     dev.home_cmd = 0.0;
                     dev.home_travel = 0.0;
                     dev.stopped_cycles = 0;
+                    dev.home_armed = false;
                     dev.enable_since = None;
                 }
             }
@@ -1223,7 +1228,7 @@ impl Master {
 
     /// The controlword and target velocity of drive `i` while its wheel is homed (`None`
     /// when the wheel is not being homed).
-    fn homing_command(&mut self, i: usize, t: f64) -> Option<(u16, i32)> {
+    fn homing_command(&mut self, i: usize) -> Option<(u16, i32)> {
         let d = self.devices[i];
         let steer_i = self
             .devices
@@ -1322,21 +1327,27 @@ impl Master {
                 let a = h.accel_rad_s2 * dt;
                 let dev = &mut self.devices[i];
                 dev.home_travel += dev.last_rate.abs() * dt;
-                if dev
+                let input = dev
                     .inputs
-                    .is_some_and(|v| v & (1u32 << (h.input_bit & 31)) != 0)
-                {
-                    // The home position: where the axis was when the input fired (the last
-                    // position sample carried forward at its rate).
+                    .is_some_and(|v| v & (1u32 << (h.input_bit & 31)) != 0);
+                // The input must rise while turning at `dir`: an axis that starts with it set
+                // first turns the other way until it clears.
+                if !input {
+                    dev.home_armed = true;
+                }
+                if input && dev.home_armed {
+                    // The home position: where the axis was when the input rose (the last
+                    // position sample carried forward at its rate to the input's frame).
                     if let Some((pos, at, rate)) = dev.last_pos {
                         let units = self.cfg.steer;
-                        let carried =
-                            rate * (t - at).clamp(0.0, 0.02) * units.increments_per_joint_rev()
-                                / std::f64::consts::TAU;
+                        let carried = rate
+                            * (dev.input_edge_at - at).clamp(-0.02, 0.02)
+                            * units.increments_per_joint_rev()
+                            / std::f64::consts::TAU;
                         dev.pos_zero = i64::from(pos) + carried.round() as i64;
                     }
                     set(self, HomingPhase::Stopping);
-                    return self.homing_command(i, t);
+                    return self.homing_command(i);
                 }
                 if dev.home_travel > 1.25 * std::f64::consts::TAU {
                     let turns = dev.home_travel / std::f64::consts::TAU;
@@ -1350,7 +1361,13 @@ impl Master {
                     return Some((ds402::CW_SHUTDOWN, 0));
                 }
                 let dev = &mut self.devices[i];
-                dev.home_cmd = (dev.home_cmd + a.copysign(dir)).clamp(-dir.abs(), dir.abs());
+                let want = if dev.home_armed { dir } else { -dir };
+                let c = dev.home_cmd;
+                dev.home_cmd = if (want - c).abs() <= a {
+                    want
+                } else {
+                    c + a.copysign(want - c)
+                };
                 let v = self.cfg.steer.velocity_from_si(dev.home_cmd).unwrap_or(0);
                 Some((ds402::CW_ENABLE_OPERATION_CMD, v))
             }
@@ -1613,7 +1630,7 @@ impl Master {
                 if d.role == Role::Steer {
                     if let HomingState::Running(_) = d.homing {
                         if self.cfg.homing_of(d.wheel).kind == HomingKind::Absolute {
-                            if pos.abs() > std::f64::consts::PI {
+                            if pos.abs() > std::f64::consts::TAU {
                                 self.fail_homing(i, HomingError::AbsoluteOutOfRange { angle: pos });
                             } else {
                                 self.devices[i].homing = HomingState::Done;
@@ -1643,7 +1660,12 @@ impl Master {
                 dev.statusword = Some(sw);
                 for (e, val) in entries[..k].iter().zip(v) {
                     match e.index {
-                        od::DIGITAL_INPUTS => dev.inputs = Some(val),
+                        od::DIGITAL_INPUTS => {
+                            if dev.inputs != Some(val) {
+                                dev.input_edge_at = t;
+                            }
+                            dev.inputs = Some(val);
+                        }
                         od::ERROR_CODE if val != 0 => dev.error_code = Some(val as u16),
                         _ => {}
                     }
@@ -2215,13 +2237,7 @@ mod tests {
         let drive = &m.devices()[0];
         assert_eq!(
             drive.skipped(),
-            &[
-                (0x1803, 1),
-                (0x608F, 1),
-                (0x608F, 2),
-                (0x6091, 1),
-                (0x6091, 2)
-            ]
+            &[(0x1803, 1), (0x608F, 1), (0x6091, 1), (0x6091, 2)]
         );
         // A mandatory object missing still fails the boot.
         let mut m = Master::new(&cfg, 0.004);

@@ -742,6 +742,38 @@ impl Device {
         self.update_statusword();
     }
 
+    /// The device loses power and boots again (after its boot time): every object back to
+    /// its default, the drive in switch on disabled, an incremental position counter at 0
+    /// wherever the axis is.
+    pub fn power_cycle(&mut self, now: Duration) {
+        self.nmt = DeviceNmt::Initialising;
+        self.reset(now, true);
+    }
+
+    /// An EMCY from the device: with error register 0 a notice (nothing else happens); with
+    /// another register on a drive, a fault with `code` (as [`Device::inject_fault`]).
+    pub fn send_emcy(
+        &mut self,
+        now: Duration,
+        code: u16,
+        register: u8,
+        out: &mut impl FnMut(CanFrame),
+    ) {
+        if self.nmt == DeviceNmt::Initialising {
+            return;
+        }
+        if register == 0 || !self.is_drive() {
+            self.stats.emcy_sent += 1;
+            out(Emcy::new(code, register).to_frame(self.node));
+            return;
+        }
+        self.od.set(ERROR_CODE, 0, u32::from(code));
+        self.emcy(code, register, out);
+        if !self.state.is_fault() {
+            self.set_state(now, State402::FaultReactionActive);
+        }
+    }
+
     /// The abort connection option (0x6007) reaction, in operation enabled only.
     fn connection_reaction(&mut self, now: Duration, code: u16) {
         if self.state != State402::OperationEnabled {
