@@ -40,6 +40,7 @@ macro_rules! err {
 mod monitor;
 mod ros2cmd;
 mod rt;
+mod sdo;
 mod service;
 mod sinks;
 mod teleop;
@@ -133,6 +134,9 @@ enum Command {
     Drive(DriveArgs),
     /// Decode frames live from a bus or from a candump log, one line per frame.
     Monitor(MonitorArgs),
+    /// Read or write one object of a CANopen device (expedited or segmented SDO), for
+    /// bring-up and diagnosis; refused while a master runs on the bus.
+    Sdo(sdo::SdoArgs),
     /// Plot a recording to PNG files.
     Plot(PlotArgs),
     /// Rewrite a recording left without index and summary (killed writer) into a new file.
@@ -236,6 +240,7 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
         Command::Run(a) => trajectory::run_bus(a),
         Command::Drive(a) => service::drive(a),
         Command::Monitor(a) => monitor::monitor(a),
+        Command::Sdo(a) => sdo::sdo(a),
         Command::Bridge(a) => Ok(crate::bridge::run(a)?),
         Command::Recover(a) => ros2cmd::recover(a),
         Command::Ros2Selftest(a) => ros2cmd::selftest(a),

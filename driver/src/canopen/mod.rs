@@ -9,6 +9,7 @@
 //! - [`cob`]: COB-IDs of the predefined connection set and their classification;
 //! - [`nmt`]: NMT commands, boot-up and heartbeat, SYNC;
 //! - [`sdo`]: expedited SDO requests and responses, abort codes as a typed enum;
+//! - [`sdo_client`]: one SDO transfer, expedited or segmented (`rollbase sdo`);
 //! - [`emcy`]: emergency frames and their error-code classes;
 //! - [`pdo`]: PDO communication and mapping parameters, packing mapped objects into frames,
 //!   the profile's fixed mappings;
@@ -43,6 +44,7 @@ pub mod nmt;
 pub mod od;
 pub mod pdo;
 pub mod sdo;
+pub mod sdo_client;
 pub mod units;
 
 /// Largest CANopen node-ID (1..=127; 0 addresses all nodes in NMT commands only).
