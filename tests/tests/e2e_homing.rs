@@ -429,4 +429,16 @@ fn a_power_cycled_steering_drive_is_homed_again_on_re_arm() {
         "{:?}",
         out.summary.fault_reason
     );
+    // The twin's informational EMCY after each start (0xFF01, error register 0) was counted
+    // and kept in the diagnostics (state port, recording, ROS 2), never a fault: wheel 2's
+    // steering drive started twice, its rolling drive and leg encoder once each.
+    let d = out.final_state.expect("state").diagnostics.modules[1];
+    assert_eq!(d.emcy_faults, 0, "{d:?}");
+    assert_eq!(d.emcy_informational, 4, "{d:?}");
+    assert!(
+        d.emcy
+            .iter()
+            .any(|e| e.node == 4 && e.code == 0xFF01 && e.register == 0),
+        "{d:?}"
+    );
 }

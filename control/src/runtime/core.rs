@@ -1569,6 +1569,9 @@ impl CycleCore {
             if watchdog && !d.in_watchdog {
                 d.counters.watchdog_trips += 1;
             }
+            if let Some(m) = self.link.master() {
+                emcy_diagnostics(m, i, &mut d.counters);
+            }
             d.in_watchdog = watchdog;
             d.counters.age_cycles = alive[i];
             d.counters.state = self.record.module_state[i];
@@ -1678,6 +1681,40 @@ fn lag_compensation(
         }
     }
     cmd
+}
+
+/// CiA 402: the EMCY counters and the newest [`crate::ports::EMCY_KEPT`] EMCYs of wheel
+/// `wheel`'s devices (no allocation).
+fn emcy_diagnostics(
+    m: &rollbase_driver::canopen::master::Master,
+    wheel: usize,
+    out: &mut crate::ports::ModuleDiagnostics,
+) {
+    use crate::ports::{EmcyEntry, EMCY_KEPT};
+    out.emcy_informational = 0;
+    out.emcy_faults = 0;
+    out.emcy = [EmcyEntry::default(); EMCY_KEPT];
+    for d in m.devices().iter().filter(|d| d.wheel == wheel) {
+        out.emcy_informational = out.emcy_informational.saturating_add(d.emcy_informational);
+        out.emcy_faults = out.emcy_faults.saturating_add(d.emcy_faults);
+        for (t, e) in d.emcy_history() {
+            let entry = EmcyEntry {
+                node: d.node,
+                code: e.code,
+                register: e.register,
+                at_ms: (t.max(0.0) * 1e3) as u64,
+            };
+            // Insert by time, newest first; the oldest falls off the end.
+            if let Some(k) = out
+                .emcy
+                .iter()
+                .position(|x| x.node == 0 || x.at_ms < entry.at_ms)
+            {
+                out.emcy.copy_within(k..EMCY_KEPT - 1, k + 1);
+                out.emcy[k] = entry;
+            }
+        }
+    }
 }
 
 /// The odometry's encoder resolution for the platform's wire profile: the native protocol's
