@@ -352,6 +352,9 @@ class Device:
 
 
 def main():
+    # Hand the interpreter lock over often: the SYNC answers (python-can's receive thread)
+    # must not wait for the motion loop's turn.
+    sys.setswitchinterval(0.0002)
     host, port, channel, seed = sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4])
     rng = random.Random(seed)
     net = canopen.Network()
@@ -402,7 +405,7 @@ def main():
     def loop():
         last = time.monotonic()
         while not stop.is_set():
-            time.sleep(0.001)
+            time.sleep(0.002)
             now = time.monotonic()
             dt, last = now - last, now
             with big:
