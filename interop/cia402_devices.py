@@ -12,7 +12,8 @@ is active over half a turn on the positive side of its edge (bit 2 of 0x60FD).
 
 Run as a process: `python3 cia402_devices.py HOST PORT CHANNEL SEED`. Commands on stdin, one
 per line: `emcy NODE CODE REGISTER` (register 0: a notice; else the drive faults with CODE in
-0x603F and 0x1003), `powercycle NODE`, `state` (prints one JSON line), `quit`."""
+0x603F and 0x1003), `powercycle NODE`, `state` (prints one JSON line), `debug` (the drives'
+NMT state and PDO configuration as one JSON line), `quit`."""
 
 import json
 import math
@@ -431,6 +432,20 @@ def main():
                     d.fault(code, reg)
             elif parts[0] == "powercycle":
                 devices[int(parts[1])].power_on()
+            elif parts[0] == "debug":
+                out = {
+                    str(n): {
+                        "op": d.operational,
+                        "nmt": d.node.nmt.state,
+                        "rpdo": [hex(c[0]) for c in d.cfg_r],
+                        "tpdo": [hex(c[0]) for c in d.cfg_t],
+                        "cw": d.cw,
+                        "mode": d.mode_display,
+                    }
+                    for n, d in devices.items()
+                    if d.kind == "drive"
+                }
+                print(json.dumps(out), flush=True)
             elif parts[0] == "state":
                 out = {
                     str(n): {
