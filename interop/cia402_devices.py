@@ -135,8 +135,13 @@ class Device:
                 self.state = SOD if self.kind == "drive" else NRTSO
                 self.zero = self.angle
                 self.mode_value = self.mode_display = 0
-            self.node.nmt.send_command(0x82)
-            self.node.nmt.send_command(0x80)
+
+            def boot_up():
+                self.node.nmt.send_command(0x82)
+                self.node.nmt.send_command(0x80)
+
+            # After python-canopen's own NMT handler (it runs after ours) set its state.
+            threading.Timer(0.002, boot_up).start()
 
     # --- CiA 402 ------------------------------------------------------------------------
     def mode(self):
@@ -373,13 +378,7 @@ def main():
     net.bus.send = locked_send
     eds_dir = tempfile.mkdtemp(prefix="rollbase-interop-eds-")
     devices = {}
-    for w in range(4):
-        devices[1 + 2 * w] = Device(net, 1 + 2 * w, "drive", "drive", w, eds_dir)
-        devices[2 + 2 * w] = Device(net, 2 + 2 * w, "drive", "steer", w, eds_dir, rng.uniform(-3.0, 3.0))
-        devices[9 + w] = Device(net, 9 + w, "encoder", "leg", w, eds_dir)
     big = threading.Lock()
-    for d in devices.values():
-        d.node.add_write_callback(d.on_sdo_write)
 
     def nmt(can_id, data, ts):
         if len(data) != 2:
@@ -389,13 +388,22 @@ def main():
                 if data[1] in (0, n):
                     d.on_nmt(data[0])
 
+    # Our NMT handler first: an exception in one of python-canopen's own handlers (they run
+    # one after the other for the same frame) must not keep a command from our devices.
+    net.subscribe(0, nmt)
+    for w in range(4):
+        devices[1 + 2 * w] = Device(net, 1 + 2 * w, "drive", "drive", w, eds_dir)
+        devices[2 + 2 * w] = Device(net, 2 + 2 * w, "drive", "steer", w, eds_dir, rng.uniform(-3.0, 3.0))
+        devices[9 + w] = Device(net, 9 + w, "encoder", "leg", w, eds_dir)
+    for d in devices.values():
+        d.node.add_write_callback(d.on_sdo_write)
+
     def sync(can_id, data, ts):
         now = time.monotonic()
         with big:
             for d in devices.values():
                 d.on_sync(now)
 
-    net.subscribe(0, nmt)
     net.subscribe(0x80, sync)
     for n, d in devices.items():
         if d.kind == "drive":
