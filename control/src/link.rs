@@ -518,11 +518,19 @@ impl Link {
         }
     }
 
-    /// A boot failure (CiA 402): (wheel, node, role, fault).
+    /// A boot failure (CiA 402): (wheel, node, role, fault): the first failed boot, homing or
+    /// rest turn, or, while not every device is ready, the first device fault latched.
     pub fn boot_failure(&self) -> Option<(usize, u8, Role, DeviceFault)> {
         match self {
             Link::Native(_) => None,
             Link::Cia402(l) if l.rest.failure.is_some() => l.rest.failure,
+            // A device that faulted while the arm waits (lost, left operational, a fault EMCY
+            // during homing): the arm fails naming it, rather than waiting for ever.
+            Link::Cia402(l) if l.master.boot_failure().is_none() && !l.master.ready() => l
+                .master
+                .devices()
+                .iter()
+                .find_map(|d| d.fault.map(|f| (d.wheel, d.node, d.role, f))),
             Link::Cia402(l) => l.master.boot_failure().map(|(w, e)| {
                 let (node, role) = l
                     .master

@@ -1221,7 +1221,8 @@ impl CycleCore {
             match self.link.wheel_fault(i) {
                 Some(WheelFault::Module { code, .. }) => sup_in.module_fault[i] = Some(code),
                 Some(WheelFault::Device { node, role, fault }) => {
-                    sup_in.device_fault[i] = Some((node, role, fault))
+                    sup_in.device_fault[i] = Some((node, role, fault));
+                    self.sup.refine_device_fault(i, node, fault);
                 }
                 None => {}
             }

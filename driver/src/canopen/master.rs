@@ -570,6 +570,8 @@ pub struct Device {
     stopped_cycles: u32,
     home_armed: bool,
     input_edge_at: f64,
+    started_at: f64,
+    confirmed: bool,
 }
 
 impl Device {
@@ -616,6 +618,8 @@ impl Device {
             stopped_cycles: 0,
             home_armed: false,
             input_edge_at: 0.0,
+            started_at: 0.0,
+            confirmed: false,
         }
     }
 
@@ -962,6 +966,8 @@ impl Master {
                     dev.boot = BootState::Started;
                     dev.nmt = Some(NmtState::Operational);
                     dev.last_heartbeat = Some(t);
+                    dev.started_at = t;
+                    dev.confirmed = false;
                 }
                 BootState::Started => {
                     let last = d.last_heartbeat.unwrap_or(t);
@@ -1440,6 +1446,7 @@ impl Master {
 
     fn on_heartbeat(&mut self, i: usize, f: &CanFrame, t: f64) -> Result<Event, Reject> {
         let (_, state) = nmt::parse_heartbeat(f).map_err(|_| Reject::Malformed)?;
+        let hb_timeout = f64::from(self.cfg.master_heartbeat_timeout_ms) * 1e-3;
         let steer_moves = self.cfg.homing_of(self.devices[i].wheel).kind != HomingKind::None;
         let d = &mut self.devices[i];
         d.nmt = Some(state);
@@ -1468,6 +1475,11 @@ impl Master {
                 d.poll_since = None;
                 d.n_skipped = 0;
             }
+            (BootState::Started, NmtState::Operational) => d.confirmed = true,
+            // A heartbeat the device sent before it took our NMT start (in flight when we
+            // sent it): not a departure from operational until the device has shown it runs.
+            (BootState::Started, NmtState::PreOperational)
+                if !d.confirmed && t - d.started_at <= hb_timeout => {}
             (BootState::Started, s) if s != NmtState::Operational => {
                 d.boot = BootState::Lost;
                 d.latch(DeviceFault::NmtState { state: s });
@@ -1608,6 +1620,7 @@ impl Master {
         if d.boot != BootState::Started {
             return Err(Reject::Unexpected);
         }
+        self.devices[i].confirmed = true;
         match (d.role, n) {
             (Role::Drive | Role::Steer, 1) => {
                 let v = pdo::DRIVE_TPDO1.unpack(f).map_err(|_| Reject::Malformed)?;
@@ -2415,6 +2428,37 @@ mod tests {
             f.to_string().contains("error code 0x603F reads 0x2310"),
             "{f}"
         );
+    }
+
+    /// A heartbeat a device sent just before it took the NMT start (in flight when the master
+    /// sent it) shows pre-operational after the master marked it started: not a departure
+    /// from operational. (Found against the independent python-canopen devices: the boot hung
+    /// with the device latched as "left operational".) Once it showed it runs, it is one.
+    #[test]
+    fn a_pre_operational_heartbeat_in_flight_at_the_start_is_not_a_fault() {
+        let cfg = no_homing(1);
+        let mut m = Master::new(&cfg, 0.004);
+        let mut dev = devices(&cfg);
+        let k = run_boot(&mut m, &mut dev, 100);
+        assert!(m.ready());
+        let t = (k + 1) as f64 * 0.004;
+        m.on_frame(&nmt::heartbeat(1, NmtState::PreOperational), t)
+            .unwrap();
+        assert!(m.wheel_fault(0).is_none(), "{:?}", m.wheel_fault(0));
+        m.on_frame(&nmt::heartbeat(1, NmtState::Operational), t + 0.1)
+            .unwrap();
+        m.on_frame(&nmt::heartbeat(1, NmtState::PreOperational), t + 0.2)
+            .unwrap();
+        assert!(matches!(
+            m.wheel_fault(0),
+            Some((
+                1,
+                Role::Drive,
+                DeviceFault::NmtState {
+                    state: NmtState::PreOperational
+                }
+            ))
+        ));
     }
 
     proptest::proptest! {
