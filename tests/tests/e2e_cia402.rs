@@ -222,7 +222,13 @@ fn a_drive_fault_is_reported_by_emcy_naming_the_device_and_stops_the_platform() 
     assert!(text.contains("wheel 2 steering drive (node 4)"), "{text}");
     assert!(text.contains("0x2310"), "{text}");
     // The master read the drive's error code (0x603F) back into the fault a few cycles later.
-    let end = out.records.last().expect("records").reason.expect("reason").to_string();
+    let end = out
+        .records
+        .last()
+        .expect("records")
+        .reason
+        .expect("reason")
+        .to_string();
     assert!(end.contains("error code 0x603F reads 0x2310"), "{end}");
     // Controlled stop within the wheel acceleration limit, steering held, latched.
     assert_controlled_stop_from(&out, fault.cycle);
