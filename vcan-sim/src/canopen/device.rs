@@ -11,8 +11,8 @@
 //! - SDO: served in pre-operational and operational (not in stopped, not while
 //!   initialising); expedited, and segmented for the string objects (0x1008 device name,
 //!   0x100A software version, 0x2000 a writable label of up to 32 bytes: toggle bit checked,
-//!   0x05030000); a segmented download of another object is a length mismatch (0x06070010);
-//!   block transfers are aborted with 0x05040001.
+//!   0x05030000); a segmented download of a numeric object is written like an expedited one
+//!   once its last segment came; block transfers are aborted with 0x05040001.
 //!   Aborts: object missing 0x06020000, sub-index missing 0x06090011, read-only 0x06010002,
 //!   write-only 0x06010001, size 0x06070010, value 0x06090030 (modes of operation other than
 //!   0 or 9: only cyclic synchronous velocity is emulated; transmission types that do not
@@ -222,6 +222,9 @@ enum Segmented {
         key: (u16, u8),
         buf: Vec<u8>,
         toggle: u8,
+        /// A numeric object (not one of the strings): written as an expedited write would
+        /// be once the last segment came.
+        numeric: bool,
     },
 }
 
@@ -986,7 +989,12 @@ impl Device {
     }
 
     /// Segmented transfers and string objects (CiA 301 7.2.4.3): true when `f` was one.
-    fn on_sdo_segmented(&mut self, f: &CanFrame, out: &mut impl FnMut(CanFrame)) -> bool {
+    fn on_sdo_segmented(
+        &mut self,
+        now: Duration,
+        f: &CanFrame,
+        out: &mut impl FnMut(CanFrame),
+    ) -> bool {
         if f.len() != 8 {
             return false;
         }
@@ -1068,13 +1076,32 @@ impl Device {
                     if expedited {
                         return false;
                     }
-                    self.stats.sdo_aborted += 1;
-                    let code = if self.od.get(index, sub).is_some() {
-                        AbortCode::LengthMismatch
-                    } else {
-                        AbortCode::NoObject
+                    // A segmented download of a numeric object: legal (CiA 301 lets the client
+                    // choose), written once the last segment came.
+                    let code = match self.od.get(index, sub) {
+                        None if self.od.has_index(index) => Some(AbortCode::NoSubIndex),
+                        None => Some(AbortCode::NoObject),
+                        Some(e) if matches!(e.access, Access::Ro | Access::Const) => {
+                            Some(AbortCode::ReadOnly)
+                        }
+                        Some(_) => None,
                     };
-                    out(abort(index, sub, code));
+                    if let Some(code) = code {
+                        self.stats.sdo_aborted += 1;
+                        out(abort(index, sub, code));
+                        return true;
+                    }
+                    self.seg = Some(Segmented::Download {
+                        key: (index, sub),
+                        buf: Vec::new(),
+                        toggle: 0,
+                        numeric: true,
+                    });
+                    let mut r = [0u8; 8];
+                    r[0] = 0x60;
+                    r[1..3].copy_from_slice(&index.to_le_bytes());
+                    r[3] = sub;
+                    send(r, &mut self.stats);
                     return true;
                 };
                 self.seg = None;
@@ -1101,6 +1128,7 @@ impl Device {
                         key: (index, sub),
                         buf: Vec::new(),
                         toggle: 0,
+                        numeric: false,
                     });
                 }
                 let mut r = [0u8; 8];
@@ -1118,16 +1146,44 @@ impl Device {
                         key,
                         mut buf,
                         toggle: t,
+                        numeric,
                     }) if t == toggle => {
                         let n = 7 - usize::from((cs >> 1) & 7);
                         buf.extend_from_slice(&d[1..1 + n]);
-                        if buf.len() > LABEL_MAX {
+                        let max = if numeric { 4 } else { LABEL_MAX };
+                        if buf.len() > max {
                             self.stats.sdo_aborted += 1;
                             out(abort(key.0, key.1, AbortCode::LengthTooHigh));
                             return true;
                         }
                         let last = cs & 0x01 != 0;
-                        if last {
+                        if last && numeric {
+                            // Written as an expedited write of the same bytes would be.
+                            let mut v = [0u8; 4];
+                            v[..buf.len()].copy_from_slice(&buf);
+                            let data = rollbase_driver::canopen::sdo::SdoData::new(
+                                u32::from_le_bytes(v),
+                                buf.len() as u8,
+                            );
+                            let r = if buf.is_empty() {
+                                Err(AbortCode::LengthTooLow)
+                            } else {
+                                self.od
+                                    .sdo_check_write(key.0, key.1, &data)
+                                    .and_then(|_| self.check_write(key.0, key.1, data.as_u32()))
+                            };
+                            if let Err(code) = r {
+                                self.stats.sdo_aborted += 1;
+                                out(SdoResponse::Abort {
+                                    index: key.0,
+                                    sub: key.1,
+                                    code,
+                                }
+                                .to_frame(self.node));
+                                return true;
+                            }
+                            self.apply(now, key.0, key.1, data.as_u32(), out);
+                        } else if last {
                             if let Some(e) = self.strings.iter_mut().find(|(k, _, _)| *k == key) {
                                 e.1 = buf;
                             }
@@ -1136,9 +1192,14 @@ impl Device {
                                 key,
                                 buf,
                                 toggle: toggle ^ 1,
+                                numeric,
                             });
                         }
-                        send([0x20 | (toggle << 4), 0, 0, 0, 0, 0, 0, 0], &mut self.stats);
+                        self.stats.sdo_served += 1;
+                        let ack = [0x20 | (toggle << 4), 0, 0, 0, 0, 0, 0, 0];
+                        if let Ok(fr) = CanFrame::new(cob::sdo_tx(self.node), &ack) {
+                            out(fr);
+                        }
                     }
                     Some(Segmented::Download { key, .. }) => {
                         self.stats.sdo_aborted += 1;
@@ -1160,7 +1221,7 @@ impl Device {
     }
 
     fn on_sdo(&mut self, now: Duration, f: &CanFrame, out: &mut impl FnMut(CanFrame)) {
-        if self.on_sdo_segmented(f, out) {
+        if self.on_sdo_segmented(now, f, out) {
             return;
         }
         let resp = match SdoRequest::parse(f) {
@@ -1836,11 +1897,10 @@ mod tests {
             r.write(od::ABORT_CONNECTION_OPTION, 0, SdoData::i16(4)),
             Err(AbortCode::InvalidValue)
         );
-        // A segmented download initiate (no e bit) of a 2-byte object: a length mismatch
-        // (segmented transfers are for the string objects, 0x1008 and 0x2000).
+        // A segmented download initiate (no e bit) of a read-only object: refused at once.
         let mut seg = [0u8; 8];
         seg[0] = 0x21;
-        seg[1..3].copy_from_slice(&od::PRODUCER_HEARTBEAT.to_le_bytes());
+        seg[1..3].copy_from_slice(&od::STATUSWORD.to_le_bytes());
         seg[4] = 2;
         let node = r.node();
         r.frame(CanFrame::new(cob::sdo_rx(node), &seg).unwrap());
@@ -1848,9 +1908,9 @@ mod tests {
         assert_eq!(
             SdoResponse::parse(&reply[0]).unwrap().1,
             SdoResponse::Abort {
-                index: od::PRODUCER_HEARTBEAT,
+                index: od::STATUSWORD,
                 sub: 0,
-                code: AbortCode::LengthMismatch
+                code: AbortCode::ReadOnly
             }
         );
         // Other nodes' requests are not answered; the value written last is read back.
