@@ -230,7 +230,8 @@ fn a_drive_fault_is_reported_by_emcy_naming_the_device_and_stops_the_platform() 
         .expect("reason")
         .to_string();
     assert!(end.contains("error code 0x603F reads 0x2310"), "{end}");
-    // Controlled stop within the wheel acceleration limit, steering held, latched.
+    // Controlled stop within the wheel acceleration limit, the steering winding down within
+    // its own, latched.
     assert_controlled_stop_from(&out, fault.cycle);
     assert_eq!(out.summary.final_state, "fault");
 }
