@@ -360,6 +360,14 @@ impl Link {
         }
     }
 
+    /// Frames made due by the late frames of the last cycle (taken after
+    /// [`Link::start_cycle`]): CiA 402 SDO requests ([`Master::service`]); none natively.
+    pub fn service(&mut self, t: f64, out: &mut FrameBuf) {
+        if let Link::Cia402(l) = self {
+            l.master.service(t, out);
+        }
+    }
+
     /// Takes one received frame; `Err` names the rejection kind (as recorded).
     pub fn on_frame(&mut self, frame: &CanFrame, t: f64) -> Result<Updates, &'static str> {
         match self {

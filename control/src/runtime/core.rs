@@ -708,6 +708,22 @@ impl CycleCore {
         }
     }
 
+    /// After [`CycleCore::start_cycle`] and the frames that arrived since the last cycle's
+    /// window ([`CycleCore::on_frame`], stamped before the SYNC): appends to `out` the frames
+    /// those made due (CiA 402: the next SDO request of a device being configured whose
+    /// answer just came; nothing natively). Returns how many were appended. Runtimes call it
+    /// before they send `out`, so the SYNC still goes first.
+    pub fn after_late_frames(&mut self, t: f64, out: &mut FrameBuf) -> usize {
+        let before = out.len();
+        self.link.service(t, out);
+        let added = out.len() - before;
+        for k in before..out.len() {
+            let f = out.as_slice()[k];
+            self.push_tx(t, &f);
+        }
+        added
+    }
+
     fn push_tx(&mut self, t: f64, f: &CanFrame) {
         if f.id() == 0x080 {
             self.sync_time = t;

@@ -997,6 +997,17 @@ impl Master {
         self.service_sdo(t, out);
     }
 
+    /// After the frames that came in between the last cycle's window and this cycle's
+    /// start were taken ([`Master::on_frame`], stamped before this cycle's SYNC): the SDO
+    /// requests they made due (the next step of a device whose answer to the request sent
+    /// at the end of the last cycle just came), sent right after the SYNC. Without this
+    /// call a device gets one SDO request per cycle (the answer to the end-of-cycle request
+    /// comes after the window and is only read after the next start); with it, two.
+    pub fn service(&mut self, t: f64, out: &mut FrameBuf) {
+        self.now = self.now.max(t);
+        self.service_sdo(t, out);
+    }
+
     fn homing_timeouts(&mut self, t: f64) {
         for i in 0..self.devices.len() {
             let d = self.devices[i];
