@@ -332,13 +332,29 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
         }
         Command::Config { cmd } => match cmd {
             ConfigCmd::Check { file } => {
-                let p = Platform::load(&file)?;
+                let (p, eds) = Platform::load_checked(&file)?;
                 outln!(
                     "# {}: valid platform `{}` with {} wheels",
                     file.display(),
                     p.name,
                     p.n()
                 );
+                for (node, role, path, product, dcf) in &eds.devices {
+                    outln!(
+                        "# node {node} ({role}): boot plan checked against {path} ({product}){}",
+                        if *dcf > 0 {
+                            format!(", {dcf} DCF values written at boot")
+                        } else {
+                            String::new()
+                        }
+                    );
+                }
+                for (node, index, sub, why) in &eds.skipped {
+                    outln!(
+                        "# node {node}: DCF value of 0x{index:04X}:{sub:02X} not written ({})",
+                        why.reason()
+                    );
+                }
                 out!("{}", p.to_toml_string());
                 Ok(0)
             }

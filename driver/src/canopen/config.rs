@@ -184,13 +184,48 @@ pub struct Cia402Config {
     /// 0x60FD0020 digital inputs, 0x60770010 torque actual); at most 6 bytes in all. 0x60FD is
     /// added when a steering drive is homed on a digital input.
     pub status_extra: Vec<u32>,
-    /// Extra SDO writes, in order, at the end of each device's boot plan (before the mode
-    /// of operation is set): current limits, quick-stop and fault reactions, polarity,
-    /// brakes, vendor objects.
+    /// The drives' quick stop (0x605A option code, 0x6085 decelerations): what a drive does
+    /// when the master sends the Quick Stop command because it cannot ramp the drives down
+    /// itself (feedback lost, bus stalled, a fatal error with the drives enabled).
+    pub quick_stop: QuickStop,
+    /// Extra SDO writes, in order, near the end of each device's boot plan (after a DCF's
+    /// values, before the unit checks and the mode of operation): current limits, fault
+    /// reactions, polarity, brakes, vendor objects.
     pub sdo: Vec<ExtraSdo>,
-    /// Device description files (EDS or DCF) per role: the boot plan is checked against them
-    /// (objects present, access, value ranges, PDO capacity) before anything starts.
+    /// Device description files (EDS or DCF) per role or device: the boot plan is checked
+    /// against them (objects present, access, value ranges, PDO capacity) before anything
+    /// starts, and a DCF's values are written at boot ([`super::eds`]).
     pub eds: EdsFiles,
+    /// The DCF values written at boot (after the plan's own configuration, before `sdo`),
+    /// filled in from the DCFs of `eds` when the platform file is loaded
+    /// ([`super::eds::apply`]); not part of the file.
+    #[serde(skip)]
+    pub dcf: Vec<super::eds::DcfWrite>,
+}
+
+/// The drives' quick stop (`[cia402.quick_stop]`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct QuickStop {
+    /// Quick stop option code 0x605A (CiA 402): 0 disable the drive function (the motor
+    /// coasts); 1 slow down on the slow-down ramp, 2 on the quick-stop ramp (0x6085), 3 at
+    /// the current limit, 4 at the voltage limit, then switch on disabled; 5–8 the same, then
+    /// stay in quick stop active (holding, powered).
+    pub option: i16,
+    /// Quick-stop deceleration of the rolling drives (rad/s² at the wheel; 0x6085).
+    pub drive_decel_rad_s2: f64,
+    /// Quick-stop deceleration of the steering drives (rad/s² at the steering axis; 0x6085).
+    pub steer_decel_rad_s2: f64,
+}
+
+impl Default for QuickStop {
+    fn default() -> Self {
+        Self {
+            option: 2,
+            drive_decel_rad_s2: 40.0,
+            steer_decel_rad_s2: 40.0,
+        }
+    }
 }
 
 /// One extra SDO write of the platform file (`[[cia402.sdo]]`).
@@ -224,10 +259,14 @@ impl ExtraSdo {
     }
 }
 
-/// EDS/DCF files per role (paths, relative to the working directory).
+/// EDS/DCF files per role, or per device (paths relative to the platform file's directory).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EdsFiles {
+    /// One device's file (`[[cia402.eds.devices]] node = 4 file = "steer4.dcf"`), before its
+    /// role's.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub devices: Vec<EdsDevice>,
     /// Rolling drives.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub drive: Option<String>,
@@ -239,6 +278,16 @@ pub struct EdsFiles {
     pub leg: Option<String>,
 }
 
+/// The description file of one device.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EdsDevice {
+    /// Node-ID.
+    pub node: u8,
+    /// EDS or DCF path.
+    pub file: String,
+}
+
 impl EdsFiles {
     /// The file of a role.
     pub fn of(&self, role: Role) -> Option<&str> {
@@ -247,6 +296,23 @@ impl EdsFiles {
             Role::Steer => self.steer.as_deref(),
             Role::Leg => self.leg.as_deref(),
         }
+    }
+
+    /// The file of the device with `role` at `node`: its own, else its role's.
+    pub fn for_device(&self, role: Role, node: u8) -> Option<&str> {
+        self.devices
+            .iter()
+            .find(|d| d.node == node)
+            .map(|d| d.file.as_str())
+            .or_else(|| self.of(role))
+    }
+
+    /// True when no file is named.
+    pub fn is_empty(&self) -> bool {
+        self.devices.is_empty()
+            && self.drive.is_none()
+            && self.steer.is_none()
+            && self.leg.is_none()
     }
 }
 
@@ -530,8 +596,10 @@ impl Cia402Config {
             coupling: 0.0,
             informational_emcy: Vec::new(),
             status_extra: Vec::new(),
+            quick_stop: QuickStop::default(),
             sdo: Vec::new(),
             eds: EdsFiles::default(),
+            dcf: Vec::new(),
         }
     }
 
@@ -754,6 +822,34 @@ impl Cia402Config {
                 ));
             }
         }
+        if !(0..=8).contains(&self.quick_stop.option) {
+            return Err(Invalid::new(
+                "cia402.quick_stop.option",
+                self.quick_stop.option,
+                "must be a CiA 402 quick stop option code 0..=8 (2: stop on the quick-stop ramp, then switch on disabled)",
+            ));
+        }
+        for (field, v) in [
+            ("drive_decel_rad_s2", self.quick_stop.drive_decel_rad_s2),
+            ("steer_decel_rad_s2", self.quick_stop.steer_decel_rad_s2),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= 1e4) {
+                return Err(Invalid::new(
+                    format!("cia402.quick_stop.{field}"),
+                    v,
+                    "must be a positive deceleration in rad/s² (0x6085)",
+                ));
+            }
+        }
+        for (i, d) in self.eds.devices.iter().enumerate() {
+            if !self.devices().any(|(_, _, m)| m == d.node) {
+                return Err(Invalid::new(
+                    format!("cia402.eds.devices[{i}].node"),
+                    d.node,
+                    "is not a node of this platform's [cia402] wheels",
+                ));
+            }
+        }
         let period_us = (period_ms * 1000.0).round() as u32;
         if interpolation_period(period_us).is_none() {
             return Err(Invalid::new(
@@ -915,11 +1011,35 @@ impl Cia402Config {
                     0,
                     SdoData::i16(self.comm_loss_reaction),
                 ));
+                // What the drive does on the master's Quick Stop command.
+                ops.push(write_opt(
+                    od::QUICK_STOP_OPTION,
+                    0,
+                    SdoData::i16(self.quick_stop.option),
+                ));
+                let decel = if role == Role::Drive {
+                    self.quick_stop.drive_decel_rad_s2
+                } else {
+                    self.quick_stop.steer_decel_rad_s2
+                };
+                ops.push(write_opt(
+                    od::QUICK_STOP_DECELERATION,
+                    0,
+                    SdoData::u32(
+                        units
+                            .velocity_from_si(decel)
+                            .map_or(u32::MAX >> 1, i32::unsigned_abs),
+                    ),
+                ));
                 let (v, ix) = interpolation_period(period_us).unwrap_or((4, -3));
                 ops.push(write(od::INTERPOLATION_TIME_PERIOD, 1, SdoData::u8(v)));
                 ops.push(write(od::INTERPOLATION_TIME_PERIOD, 2, SdoData::i8(ix)));
+                // A DCF's values and the platform file's writes, then the units are read
+                // as the drive ended up with them.
+                self.push_extra(&mut ops, role, node);
                 // Units, where the drive has the objects: its encoder resolution is the
-                // platform file's, and it does not apply a gear of its own.
+                // platform file's, it does not apply a gear of its own, and its velocity
+                // objects are in the unit the platform file converts from.
                 if units.velocity_unit == super::units::VelocityUnit::IncrementsPerSecond {
                     ops.push(SdoOp::Verify {
                         index: od::POSITION_ENCODER_RESOLUTION,
@@ -931,6 +1051,16 @@ impl Cia402Config {
                         } else {
                             "position encoder resolution, increments per motor revolution (cia402.steer.increments_per_rev)"
                         },
+                        poll_ms: 0,
+                        optional: true,
+                    });
+                    // … per one motor revolution (the resolution is 0x608F:01 / 0x608F:02).
+                    ops.push(SdoOp::Verify {
+                        index: od::POSITION_ENCODER_RESOLUTION,
+                        sub: 2,
+                        mask: 0xFFFF_FFFF,
+                        expected: 1,
+                        what: "position encoder resolution, motor revolutions (must be 1: increments_per_rev counts one revolution)",
                         poll_ms: 0,
                         optional: true,
                     });
@@ -946,7 +1076,23 @@ impl Cia402Config {
                         optional: true,
                     });
                 }
-                self.push_extra(&mut ops, role, node);
+                ops.push(SdoOp::Verify {
+                    index: od::SI_UNIT_VELOCITY,
+                    sub: 0,
+                    // Bits 0-7 are reserved.
+                    mask: 0xFFFF_FF00,
+                    expected: units.velocity_unit.si_unit_velocity(),
+                    what: match (role, units.velocity_unit) {
+                        (Role::Drive, super::units::VelocityUnit::IncrementsPerSecond) => "SI unit velocity (cia402.drive.velocity_unit = increments_per_second: inc/s)",
+                        (Role::Drive, super::units::VelocityUnit::Rpm) => "SI unit velocity (cia402.drive.velocity_unit = rpm: rev/min)",
+                        (Role::Drive, super::units::VelocityUnit::MilliRpm) => "SI unit velocity (cia402.drive.velocity_unit = milli_rpm: 0.001 rev/min)",
+                        (_, super::units::VelocityUnit::IncrementsPerSecond) => "SI unit velocity (cia402.steer.velocity_unit = increments_per_second: inc/s)",
+                        (_, super::units::VelocityUnit::Rpm) => "SI unit velocity (cia402.steer.velocity_unit = rpm: rev/min)",
+                        (_, super::units::VelocityUnit::MilliRpm) => "SI unit velocity (cia402.steer.velocity_unit = milli_rpm: 0.001 rev/min)",
+                    },
+                    poll_ms: 0,
+                    optional: true,
+                });
                 let h = self.homing_of(wheel);
                 if role == Role::Steer && h.kind == HomingKind::Drive {
                     let vel = |v: f64| units.velocity_from_si(v.abs()).unwrap_or(0).unsigned_abs();
@@ -1050,7 +1196,17 @@ impl Cia402Config {
         ]
     }
 
+    /// The DCF's values of the device (see [`super::eds`]), then the platform file's extra
+    /// writes: the platform file has the last word.
     fn push_extra(&self, ops: &mut Vec<SdoOp>, role: Role, node: u8) {
+        for d in self.dcf.iter().filter(|d| d.node == node) {
+            ops.push(SdoOp::Write {
+                index: d.index,
+                sub: d.sub,
+                data: d.data,
+                optional: false,
+            });
+        }
         for x in self.sdo.iter().filter(|x| x.applies(role, node)) {
             let data = SdoData::new(x.value as u32, x.size);
             ops.push(SdoOp::Write {

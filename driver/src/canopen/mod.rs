@@ -17,6 +17,8 @@
 //!   device's transitions and the master's next controlword);
 //! - [`od`]: object indices both sides use;
 //! - [`units`]: drive increments, rpm, gear ratio and encoder steps to SI and back;
+//! - [`eds`]: EDS/DCF device description files (CiA 306) and the check of the boot plan
+//!   against them;
 //! - [`config`]: the profile's section of the platform file and the SDO configuration plan
 //!   written to every device at boot;
 //! - [`master`]: the sans-IO master (boot, configuration, cyclic exchange, supervision);
@@ -38,6 +40,7 @@ pub mod config;
 pub mod describe;
 pub mod doc;
 pub mod ds402;
+pub mod eds;
 pub mod emcy;
 pub mod master;
 pub mod nmt;

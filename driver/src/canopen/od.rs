@@ -78,6 +78,8 @@ pub const QUICK_STOP_OPTION: u16 = 0x605A;
 pub const FAULT_REACTION_OPTION: u16 = 0x605E;
 /// CiA 402: home offset (INTEGER32, position units).
 pub const HOME_OFFSET: u16 = 0x607C;
+/// CiA 402: quick stop deceleration (UNSIGNED32, acceleration units).
+pub const QUICK_STOP_DECELERATION: u16 = 0x6085;
 /// CiA 402: polarity (UNSIGNED8: bit 7 position, bit 6 velocity).
 pub const POLARITY: u16 = 0x607E;
 /// CiA 402: position encoder resolution (sub 1 encoder increments, sub 2 motor revolutions).
