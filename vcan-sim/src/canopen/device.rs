@@ -208,6 +208,13 @@ pub struct Device {
     status_hold_until: Option<Duration>,
     strings: Vec<((u16, u8), Vec<u8>, bool)>,
     seg: Option<Segmented>,
+    /// −1 when the motor is mounted mirrored (its positive direction turns the joint the
+    /// negative way), else 1.
+    mirror: f64,
+    /// The quick stop's velocity ramp (joint rate, rad/s) while in quick stop active.
+    qs_cmd: Option<f64>,
+    /// The joint rate at the last sample (rad/s).
+    last_rate: f64,
 }
 
 /// A segmented SDO transfer in progress (CiA 301 7.2.4.3.4–7).
@@ -288,14 +295,20 @@ impl Device {
     ) -> Self {
         let w = cfg.wheels.get(wheel).copied().unwrap_or(cfg.wheels[0]);
         let node = w.node(role);
+        // The machine's gear is the ratio's magnitude: a negative ratio is how the platform
+        // file compensates a mirrored motor (`twin.mirrored`), not part of the drive.
+        let machine = |u: DriveUnits| DriveUnits {
+            gear_ratio: u.gear_ratio.abs(),
+            ..u
+        };
         let app = match role {
             Role::Drive => App::Drive {
-                units: cfg.drive,
+                units: machine(cfg.drive),
                 steer: false,
                 offset: 0.0,
             },
             Role::Steer => App::Drive {
-                units: cfg.steer,
+                units: machine(cfg.steer),
                 steer: true,
                 offset: w.steer_offset_rad,
             },
@@ -349,8 +362,20 @@ impl Device {
             status_hold_until: None,
             strings: Vec::new(),
             seg: None,
+            mirror: if twin.mirrored.contains(&node) {
+                -1.0
+            } else {
+                1.0
+            },
+            qs_cmd: None,
+            last_rate: 0.0,
         };
         d.build_dictionary(twin);
+        for &(n, index, sub, v) in &twin.objects {
+            if n == node {
+                d.od.set_default(index, sub, v);
+            }
+        }
         let name = match role {
             Role::Drive => "rollbase twin CiA 402 rolling drive",
             Role::Steer => "rollbase twin CiA 402 steering drive",
@@ -483,6 +508,9 @@ impl Device {
             d.add(od::TARGET_VELOCITY, 0, 4, Rw, M::Rpdo, 0);
             d.add(od::DIGITAL_INPUTS, 0, 4, Ro, M::Tpdo, 0);
             d.add(od::QUICK_STOP_OPTION, 0, 2, Rw, M::No, 2);
+            // Quick stop deceleration (acceleration units; the factory's: the largest).
+            d.add(od::QUICK_STOP_DECELERATION, 0, 4, Rw, M::No, 0x7FFF_FFFF);
+            d.add(od::POLARITY, 0, 1, Rw, M::No, 0);
             d.add(od::FAULT_REACTION_OPTION, 0, 2, Rw, M::No, 2);
             d.add(od::HOMING_METHOD, 0, 1, Rw, M::No, 0);
             d.add(od::HOMING_SPEEDS, 0, 1, Const, M::No, 2);
@@ -491,6 +519,14 @@ impl Device {
             d.add(od::HOMING_ACCELERATION, 0, 4, Rw, M::No, 0);
             d.add(od::HOME_OFFSET, 0, 4, Rw, M::No, 0);
             if let App::Drive { units, steer, .. } = self.app {
+                d.add(
+                    od::SI_UNIT_VELOCITY,
+                    0,
+                    4,
+                    Rw,
+                    M::No,
+                    units.velocity_unit.si_unit_velocity(),
+                );
                 d.add(od::POSITION_ENCODER_RESOLUTION, 0, 1, Const, M::No, 2);
                 d.add(
                     od::POSITION_ENCODER_RESOLUTION,
@@ -562,13 +598,68 @@ impl Device {
     /// is off (not enabled, halt, not in cyclic synchronous velocity, or an encoder).
     pub fn motor(&self) -> Option<f64> {
         if self.homing_active() && self.state == State402::OperationEnabled {
-            return Some(self.home_cmd);
+            return Some(self.pos_sign() * self.home_cmd);
+        }
+        if self.state == State402::QuickStopActive && self.is_drive() {
+            return self.qs_cmd;
         }
         match self.app {
-            App::Drive { units, .. } if self.follows() => {
-                Some(units.velocity_to_si(self.od.value(od::TARGET_VELOCITY, 0) as i32))
-            }
+            App::Drive { units, .. } if self.follows() => Some(
+                self.vel_sign()
+                    * units.velocity_to_si(self.od.value(od::TARGET_VELOCITY, 0) as i32),
+            ),
             _ => None,
+        }
+    }
+
+    /// Sign between the joint and the drive's position values: the mounting times the
+    /// position polarity (0x607E bit 7).
+    fn pos_sign(&self) -> f64 {
+        let inverted = self.od.value(od::POLARITY, 0) & 0x80 != 0;
+        self.mirror * if inverted { -1.0 } else { 1.0 }
+    }
+
+    /// Sign between the joint and the drive's velocity values: the mounting times the
+    /// velocity polarity (0x607E bit 6).
+    fn vel_sign(&self) -> f64 {
+        let inverted = self.od.value(od::POLARITY, 0) & 0x40 != 0;
+        self.mirror * if inverted { -1.0 } else { 1.0 }
+    }
+
+    /// The quick stop option code 0x605A.
+    fn quick_stop_option(&self) -> i16 {
+        self.od.value(od::QUICK_STOP_OPTION, 0) as u16 as i16
+    }
+
+    /// One step of a quick stop (in quick stop active): the velocity ramps to zero at the
+    /// quick-stop deceleration 0x6085 (options 1, 2, 5, 6; the slow-down ramp of 1 and 5 is
+    /// not emulated apart from it) or at the torque limit (3, 4, 7, 8: the power stage
+    /// brakes, `qs_cmd` none until at rest); at rest, options 1–4 go on to switch on
+    /// disabled, 5–8 hold.
+    fn quick_stop_step(&mut self, now: Duration, dt: f64) {
+        let App::Drive { units, .. } = self.app else {
+            return;
+        };
+        let opt = self.quick_stop_option();
+        let stopped = match opt {
+            1 | 2 | 5 | 6 => {
+                let decel = units
+                    .velocity_to_si(self.od.value(od::QUICK_STOP_DECELERATION, 0) as i32)
+                    .abs();
+                let c = self.qs_cmd.unwrap_or(self.last_rate);
+                let a = decel * dt;
+                let next = if c.abs() <= a { 0.0 } else { c - a.copysign(c) };
+                self.qs_cmd = Some(next);
+                next == 0.0 && self.last_rate.abs() < 1e-3
+            }
+            _ => {
+                let at_rest = self.last_rate.abs() < 1e-3;
+                self.qs_cmd = at_rest.then_some(0.0);
+                at_rest
+            }
+        };
+        if stopped && (1..=4).contains(&opt) {
+            self.set_state(now, State402::SwitchOnDisabled);
         }
     }
 
@@ -614,6 +705,20 @@ impl Device {
                 self.homing = HomingRun::Idle;
                 self.home_cmd = 0.0;
             }
+            if s == State402::QuickStopActive {
+                // The ramp starts from the speed the joint has now; option 0 disables the
+                // drive function at once (the motor coasts).
+                self.qs_cmd = Some(self.last_rate);
+                if self.quick_stop_option() == 0 && self.state == State402::OperationEnabled {
+                    self.qs_cmd = None;
+                    self.state = State402::SwitchOnDisabled;
+                    self.fault_since = None;
+                    self.update_statusword();
+                    return;
+                }
+            } else {
+                self.qs_cmd = None;
+            }
             self.state = s;
             self.fault_since = (s == State402::FaultReactionActive).then_some(now);
         }
@@ -650,7 +755,11 @@ impl Device {
             return;
         };
         let method = self.od.value(od::HOMING_METHOD, 0) as u8 as i8;
-        let angle = self.last_wrapped.unwrap_or(0.0);
+        // In the drive's coordinates (its positive direction): a mirrored motor or an
+        // inverted polarity sees the switch on the other side.
+        let sign = self.pos_sign();
+        let angle = angle::wrap(sign * self.last_wrapped.unwrap_or(0.0));
+        let axis = twin::axis_in(&axis, sign);
         self.home_cmd = 0.0;
         self.homing = match twin::start(method, &axis, angle) {
             Ok(Some(run)) => run,
@@ -686,9 +795,12 @@ impl Device {
                 cmd + a.copysign(target - cmd)
             }
         };
+        // In the drive's coordinates, as the drive homes.
+        let sign = self.pos_sign();
+        let axis = twin::axis_in(&axis, sign);
         let (prev, now) = (
-            self.prev_joint.unwrap_or(self.joint_angle),
-            self.joint_angle,
+            sign * self.prev_joint.unwrap_or(self.joint_angle),
+            sign * self.joint_angle,
         );
         match self.homing {
             HomingRun::Seek {
@@ -718,7 +830,7 @@ impl Device {
                         travel: 0.0,
                     },
                     (Some(at), None) => {
-                        self.zero = Some(at);
+                        self.zero = Some(sign * at);
                         HomingRun::Stop
                     }
                     // Two turns without the switch or the index: give up (homing error).
@@ -1359,20 +1471,30 @@ impl Device {
                     self.joint_angle += s.wheel_speed * dt;
                     (s.wheel_speed, self.joint_angle)
                 };
-                let vel = units.velocity_from_si(rate).unwrap_or(if rate > 0.0 {
-                    i32::MAX
-                } else {
-                    i32::MIN
-                });
-                self.od
-                    .set(od::POSITION_ACTUAL, 0, units.rad_to_position(pos) as u32);
+                self.last_rate = rate;
+                // What the drive reports: the joint's motion as its motor and encoder see it
+                // (mounting), inverted where its polarity says so.
+                let (ps, vs) = (self.pos_sign(), self.vel_sign());
+                let v = vs * rate;
+                let vel =
+                    units
+                        .velocity_from_si(v)
+                        .unwrap_or(if v > 0.0 { i32::MAX } else { i32::MIN });
+                self.od.set(
+                    od::POSITION_ACTUAL,
+                    0,
+                    units.rad_to_position(ps * pos) as u32,
+                );
                 self.od.set(od::VELOCITY_ACTUAL, 0, vel as u32);
                 if steer && self.homing_active() && dt > 0.0 {
                     self.homing_step(dt);
                     // The counter's zero may just have been set: the position follows.
                     let p = self.joint_angle - self.zero.unwrap_or(self.joint_angle);
                     self.od
-                        .set(od::POSITION_ACTUAL, 0, units.rad_to_position(p) as u32);
+                        .set(od::POSITION_ACTUAL, 0, units.rad_to_position(ps * p) as u32);
+                }
+                if self.state == State402::QuickStopActive && dt > 0.0 {
+                    self.quick_stop_step(now, dt);
                 }
             }
             App::Encoder { units } => {

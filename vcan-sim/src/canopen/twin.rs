@@ -20,6 +20,13 @@
 //!   rolling drives have no gear ratio object 0x6091.
 //! - **Long strings**: the device name 0x1008 is longer than 4 bytes (a segmented upload),
 //!   and 0x2000:00 is a writable label of up to 32 bytes (a segmented download).
+//! - **Motors mounted mirrored** (`mirrored`): the motor's positive direction turns the
+//!   joint the negative way; the drive's polarity 0x607E (bit 7 position, bit 6 velocity)
+//!   inverts what it reports and takes, as CiA 402 says. The platform file compensates with
+//!   a negative `gear_ratio` or 0x607E = 0xC0; the twin's own conversions use the ratio's
+//!   magnitude (the machine's gear) and this flag.
+//! - **Objects set otherwise at the factory** (`objects`): e.g. a drive whose velocity unit
+//!   0x60A9 is rev/min.
 
 use rollbase_control::types::MAX_WHEELS;
 
@@ -69,6 +76,10 @@ pub struct TwinConfig {
     /// Delay of a drive's first statusword after the NMT start (ms; the event timer allows
     /// up to its period).
     pub first_status_delay_ms: u32,
+    /// Nodes whose motor is mounted mirrored.
+    pub mirrored: Vec<u8>,
+    /// Object defaults that differ from the twin's: (node, index, sub, value).
+    pub objects: Vec<(u8, u16, u8, u32)>,
 }
 
 impl Default for TwinConfig {
@@ -80,6 +91,8 @@ impl Default for TwinConfig {
             mode_lag_ms: 6,
             encoder_tpdo2_on: true,
             first_status_delay_ms: 0,
+            mirrored: Vec::new(),
+            objects: Vec::new(),
         }
     }
 }
@@ -99,6 +112,8 @@ impl TwinConfig {
             mode_lag_ms: 0,
             encoder_tpdo2_on: false,
             first_status_delay_ms: 0,
+            mirrored: Vec::new(),
+            objects: Vec::new(),
         }
     }
 }
@@ -172,6 +187,20 @@ pub(crate) fn start(method: i8, axis: &SteerAxis, angle: f64) -> Result<Option<H
         35 | 37 => return Ok(None),
         _ => return Err(()),
     }))
+}
+
+/// The axis as a drive whose positive direction is `sign` × the joint's sees it (sign −1:
+/// a mirrored motor, or an inverted polarity).
+pub(crate) fn axis_in(axis: &SteerAxis, sign: f64) -> SteerAxis {
+    if sign >= 0.0 {
+        return *axis;
+    }
+    SteerAxis {
+        switch_edge_rad: -axis.switch_edge_rad,
+        switch_positive: !axis.switch_positive,
+        index_rad: -axis.index_rad,
+        ..*axis
+    }
 }
 
 /// True when moving from `a` to `b` (unwrapped, one tick apart) passed angle `x` (wrapped).
