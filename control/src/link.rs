@@ -517,6 +517,15 @@ impl Link {
         }
     }
 
+    /// The host cannot ramp the drives down itself (feedback lost, bus failing): CiA 402
+    /// drives get the Quick Stop command until re-armed ([`Master::quick_stop`]); natively
+    /// nothing more (the modules' own watchdogs stop them).
+    pub fn quick_stop(&mut self) {
+        if let Link::Cia402(l) = self {
+            l.master.quick_stop();
+        }
+    }
+
     /// The controller's CAN interface went bus-off and was restarted: CiA 402 devices are
     /// taken as lost and latch the fault until re-armed (then booted again); natively the
     /// modules' watchdogs have tripped and the re-arm's fault reset clears them.

@@ -958,6 +958,17 @@ impl CycleCore {
         let at_rest = command_at_rest(&self.last_cmd, self.sup.config().rest_speed);
         let state_before = self.sup.state();
         let mode = self.sup.step(&self.platform, sup_in, at_rest);
+        // Feedback lost or the bus failing: the host cannot ramp the drives down on what they
+        // do; drives that can (CiA 402) stop on their own quick-stop ramp.
+        if self.sup.state() == SupervisorState::Fault
+            && state_before != SupervisorState::Fault
+            && matches!(
+                self.sup.reason(),
+                Some(FaultReason::StaleFeedback { .. } | FaultReason::BusError)
+            )
+        {
+            self.link.quick_stop();
+        }
         if self.sup.state() == SupervisorState::Tracking
             && state_before != SupervisorState::Tracking
         {

@@ -67,6 +67,7 @@ pub fn object_name(index: u16, sub: u8) -> String {
         (od::DEVICE_NAME, _) => "manufacturer device name",
         (od::ERROR_CODE, _) => "error code",
         (od::QUICK_STOP_OPTION, _) => "quick stop option code",
+        (od::QUICK_STOP_DECELERATION, _) => "quick stop deceleration",
         (od::FAULT_REACTION_OPTION, _) => "fault reaction option code",
         (od::HOME_OFFSET, _) => "home offset",
         (od::POLARITY, _) => "polarity",
@@ -273,20 +274,13 @@ pub fn markdown() -> String {
 
     s.push_str("## Boot\n\n");
     s.push_str(
-        "For every device, in parallel: NMT reset communication → wait for its boot-up (at \
-         most `boot_timeout_ms`) → the configuration below, one SDO request in flight per \
-         device (at most two per cycle), each answered within `sdo_timeout_ms` or repeated \
-         `sdo_retries` times → NMT start → (steering drives) homing → every steering axis to \
-         its rest angle. The controller arms only then. An abort, a timeout or a value read back \
-         that does not match stops the boot; the run ends in Fault with a message naming the \
-         node, its role, the object and the abort code. Steps marked optional are skipped when \
-         the device answers \"object does not exist\" (0x06020000) or \"sub-index does not \
-         exist\" (0x06090011), and listed per device (`Device::skipped`). A mode display \
-         (0x6061) is read again every cycle until it shows the mode written, for at most \
-         `mode_switch_timeout_ms`. The extra writes of `[[cia402.sdo]]` (current limits, \
-         quick-stop and fault reactions 0x605A/0x605E, polarity 0x607E, brake and vendor \
-         objects) go in, in the file's order, before the mode of operation. The PDO COB-IDs \
-         below are written with the device's node-ID added.\n\n",
+        r#"For every device, in parallel: NMT reset communication → wait for its boot-up (at most `boot_timeout_ms`) → the configuration below, one SDO request in flight per device (at most two per cycle), each answered within `sdo_timeout_ms` or repeated `sdo_retries` times → NMT start → (steering drives) homing → every steering axis to its rest angle. The controller arms only then. An abort, a timeout or a value read back that does not match stops the boot; the run ends in Fault with a message naming the node, its role, the object and the abort code. Steps marked optional are skipped when the device answers "object does not exist" (0x06020000) or "sub-index does not exist" (0x06090011), and listed per device (`Device::skipped`). A mode display (0x6061) is read again every cycle until it shows the mode written, for at most `mode_switch_timeout_ms`. The quick stop option 0x605A and deceleration 0x6085 come from `[cia402.quick_stop]` (optional steps). Then, in this order, after the plan's own configuration and before the unit checks and the mode of operation: a DCF's values (`[cia402.eds]`, see below), then the extra writes of `[[cia402.sdo]]` (current limits, fault reaction 0x605E, polarity 0x607E, brake and vendor objects) in the file's order: the platform file has the last word. The unit checks read what the drive ended up with. The PDO COB-IDs below are written with the device's node-ID added.
+
+### Device description files (EDS/DCF, CiA 306)
+
+`[cia402.eds]` names a file per role (`drive`, `steer`, `leg`) and per device (`[[cia402.eds.devices]] node = 4 file = "steer4.dcf"`, before its role's), relative to the platform file. When the platform file is loaded (`rollbase config check`, `drive`, every command that reads it), each file is parsed (INI: `[DeviceInfo]`, the object lists, one section per object and sub-index with `ObjectType`, `DataType`, `AccessType`, `LowLimit`, `HighLimit`, `DefaultValue`, `PDOMapping`, a DCF's `ParameterValue`; `$NODEID` resolved per device) and every step of the device's boot plan is checked against it before any frame is sent: the object exists (optional steps may be missing), a written object is writable and the value has the data type's size and lies within the limits, a read object is readable, a mapped object is PDO-mappable with its data type's length, and the mapping fits the mapping object's entries and 64 bits. A value the plan reads back (encoder resolution, measuring step, units) and the DCF configures otherwise is refused ahead. Each error names the node, role and wheel, the object as 0xIIII:SS, the file, and what to change. A DCF's `ParameterValue`s are written at boot (the order above), in index order, except: read-only objects, objects the plan writes as mandatory steps (PDOs, heartbeat, mode …: the plan's value is the one the master needs; its optional defaults such as 0x605A/0x6085 a DCF does replace), PDO parameters 0x1400–0x1BFF, store/restore 0x1010/0x1011, and values that are not 1–4 bytes; `rollbase config check` lists what it checked and what it did not write.
+
+"#,
     );
     let _ = writeln!(
         s,
@@ -321,6 +315,7 @@ pub fn markdown() -> String {
          | any but fault | no | 0x0006 shutdown (drive function off, at rest) |\n\
          | fault | re-arm | 0x0080 fault reset (rising edge; 0x0000 in between) |\n\
          | fault | otherwise | 0x0000 disable voltage |\n\
+         | operation enabled, quick stop active | quick stop commanded (`Master::quick_stop`, until re-armed) | 0x0002 quick stop |\n\
          | quick stop active, not ready, fault reaction active, unknown | | 0x0000 disable voltage |\n\n\
          The target velocity is zero until the drive has reported operation enabled. A target \
          the velocity object cannot carry is sent as zero with halt, and the supervisor's \
@@ -344,6 +339,7 @@ pub fn markdown() -> String {
          | statusword shows fault | master | device fault (0x603F and 0x1003:01 read back into it), controlled stop |\n\
          | a steering drive's boot-up (rebooted, power cycled) | master | device fault; the re-arm boots it and homes it again (its counter restarted at 0) |\n\
          | the controller's CAN interface bus-off | master (`Master::bus_off`) | every device lost, fault latched; the re-arm boots them all again |\n\
+         | stale feedback (last row) or a bus error: the host cannot close its ramp on what the drives do | core (`Master::quick_stop`) | every enabled drive gets the Quick Stop command (controlword 0x0002) until re-armed, and stops on its own quick-stop ramp (0x605A option, 0x6085 deceleration from `[cia402.quick_stop]`; option 2 then switches on disabled); no drive is enabled again before the re-arm |\n\
          | boot-up or heartbeat state other than operational while running | master | device fault (rebooted / left operational), controlled stop |\n\
          | drive not in operation enabled `enable_timeout_ms` ({} ms) after being asked | master | device fault, controlled stop |\n\
          | no TPDO1 from a device for more than the supervisor's `stale_cycles` (3 cycles, as for the native modules; any device of a wheel) | supervisor | stale feedback naming the node |",
@@ -392,34 +388,18 @@ pub fn markdown() -> String {
 
     s.push_str("## Bring-up checklist (first power-on of real drives)\n\n");
     s.push_str(
-        "1. **Wheels off the ground.** Lift the base so no wheel touches the floor; keep the \
-         emergency stop in reach. Nothing moves before you arm, but homing and the turn to the \
-         rest angles move every steering axis.\n\
-         2. **Node-IDs and bit rate**: set them with the vendor's tool; write them into \
-         `[[cia402.wheels]]`. `rollbase sdo --bus can0 --node N read 0x1000:00` must answer \
-         0x…0192 (drive) or 0x…0196 (encoder); `read 0x1008:00 --type str` names the device.\n\
-         3. **Units**: `increments_per_rev` (after quadrature) and `gear_ratio` per drive kind; \
-         `velocity_unit` as the drive's 0x60FF/0x606C are scaled. Where the drive has them, \
-         the boot checks 0x608F:01 (encoder increments) and a 1:1 0x6091 (the platform file \
-         converts; the drive must not scale as well). Turn each wheel by hand one revolution \
-         and check `rollbase monitor` shows 2π.\n\
-         4. **Polarity**: a motor mounted mirrored gets a negative `gear_ratio` (host side), or \
-         0x607E = 0xC0 as an extra SDO write `[[cia402.sdo]] role = \"steer\" index = 0x607E \
-         value = 0xC0 size = 1` (drive side); not both.\n\
-         5. **Homing**: choose `kind` and `method` from the drive manual's 0x6098 table and the \
-         machine (switch, index, absolute encoder); set speeds within the steering limits and \
-         a `timeout_ms` longer than the longest search; home once, read the angle the wheel \
-         stands at, write it as `steer_offset_rad`.\n\
-         6. **Extra objects**: current limits, quick-stop (0x605A) and fault (0x605E) reactions, \
-         brake, vendor objects as `[[cia402.sdo]]` (by `role` or `node`; `optional = true` for \
-         objects some drives lack). Mandatory objects a drive does not have fail the boot naming \
-         it: check the drive's EDS.\n\
-         7. **Messages**: vendor notices (EMCY with error register 0) are informational; add \
-         codes a drive sends as warnings to `informational_emcy` only after reading its manual.\n\
-         8. `rollbase config check platform.toml`, `rollbase bus-load --config platform.toml`, \
-         then `rollbase drive --bus can0 --commands -` with the wheels lifted: watch it boot, \
-         home and turn to rest; send small commands; `{\"rearm\": true}` clears a boot-time \
-         fault once its cause is fixed.\n\n",
+        r#"1. **Wheels off the ground.** Lift the base so no wheel touches the floor; keep the emergency stop in reach. Nothing moves before you arm, but homing and the turn to the rest angles move every steering axis.
+2. **Node-IDs and bit rate**: set them with the vendor's tool; write them into `[[cia402.wheels]]`. `rollbase sdo --bus can0 --node N read 0x1000:00` must answer 0x…0192 (drive) or 0x…0196 (encoder); `read 0x1008:00 --type str` names the device.
+3. **Units**: `increments_per_rev` (after quadrature) and `gear_ratio` per drive kind; `velocity_unit` as the drive's 0x60FF/0x606C are scaled. Where the drive has them, the boot reads and checks 0x608F:01/02 (encoder increments per one motor revolution), a 1:1 0x6091 (the platform file converts; the drive must not scale as well) and the SI unit velocity 0x60A9 (CiA 402 factor group, bytes prefix · unit · time unit · reserved, codes of CiA 303-2: 0x00B50300 inc/s, 0x00B44700 rev/min, 0xFDB44700 0.001 rev/min as in Nanotec's and Synapticon's manuals); a mismatch refuses the boot naming the object, the value read and what the file expects. Turn each wheel by hand one revolution and check `rollbase monitor` shows 2π.
+4. **Polarity**: a motor mounted mirrored (its positive direction turns the joint the negative way) gets a negative `gear_ratio` (host side, for every drive of that kind), or 0x607E = 0xC0 (position and velocity inverted) as an extra SDO write `[[cia402.sdo]] node = 4 index = 0x607E value = 0xC0 size = 1` (drive side, per drive, and the drive's homing then searches in the joint's directions); not both. With the wheels lifted, command a small positive steering rate and wheel speed and check the wheels turn the way the platform's axes say: the host cannot see a wrong sign from the drive's own feedback (it is consistent with its own command).
+5. **Homing**: choose `kind` and `method` from the drive manual's 0x6098 table and the machine (switch, index, absolute encoder); set speeds within the steering limits and a `timeout_ms` longer than the longest search; home once, read the angle the wheel stands at, write it as `steer_offset_rad`.
+6. **EDS/DCF**: name the drive's EDS (or the DCF its vendor tool saved) in `[cia402.eds]`; `rollbase config check` then checks the boot plan against it (objects, access, ranges, PDO capacity) without a bus, and a DCF's values are written at every boot.
+7. **Quick stop**: `[cia402.quick_stop]` `option` (0x605A; 2: quick-stop ramp then switch on disabled, 6: ramp then hold) and `drive_decel_rad_s2` / `steer_decel_rad_s2` (0x6085, at the joint): the drive stops on its own when the host loses its feedback. Check the ramp with the wheels lifted (cut a leg encoder's cable or power: the wheels must ramp down, not coast).
+8. **Extra objects**: current limits, fault reaction (0x605E), brake, vendor objects as `[[cia402.sdo]]` (by `role` or `node`; `optional = true` for objects some drives lack). Mandatory objects a drive does not have fail the boot naming it: check the drive's EDS.
+9. **Messages**: vendor notices (EMCY with error register 0) are informational; add codes a drive sends as warnings to `informational_emcy` only after reading its manual.
+10. `rollbase config check platform.toml`, `rollbase bus-load --config platform.toml`, then `rollbase drive --bus can0 --commands -` with the wheels lifted: watch it boot, home and turn to rest; send small commands; `{"rearm": true}` clears a boot-time fault once its cause is fixed.
+
+"#,
     );
 
     s.push_str("## Units (defaults)\n\n");

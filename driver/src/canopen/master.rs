@@ -675,6 +675,9 @@ pub struct Master {
     homing_allowed: bool,
     homed_moves: u32,
     bus_off: u32,
+    /// Quick stop commanded ([`Master::quick_stop`]), until the next re-arm.
+    quick_stop: bool,
+    quick_stops: u32,
 }
 
 impl Master {
@@ -711,6 +714,8 @@ impl Master {
             homing_allowed: false,
             homed_moves: 0,
             bus_off: 0,
+            quick_stop: false,
+            quick_stops: 0,
         }
     }
 
@@ -818,6 +823,7 @@ impl Master {
     /// failing its arming; one whose fault persists is reported when the grace period ends.
     pub fn rearm(&mut self, t: f64) {
         self.failure = None;
+        self.quick_stop = false;
         self.homing_allowed = true;
         let grace = t + f64::from(self.cfg.enable_timeout_ms) * 1e-3;
         for d in &mut self.devices {
@@ -840,6 +846,30 @@ impl Master {
                 d.reset_grace_until = f64::INFINITY;
             }
         }
+    }
+
+    /// The host cannot ramp the drives down itself (feedback lost, bus stalled beyond the
+    /// stale limit, a fatal error with the drives enabled): from the next
+    /// [`Master::finish_cycle`] on, every drive in operation enabled gets the Quick Stop
+    /// command (controlword 0x0002, CiA 402 transition 11) and keeps getting it while in
+    /// quick stop active, so that it stops on its own quick-stop ramp (0x605A option, 0x6085
+    /// deceleration, both written at boot from `[cia402.quick_stop]`); drives in other
+    /// states are not enabled again. Homings in progress end. Until the next re-arm.
+    pub fn quick_stop(&mut self) {
+        if !self.quick_stop {
+            self.quick_stops = self.quick_stops.saturating_add(1);
+        }
+        self.quick_stop = true;
+    }
+
+    /// True while a quick stop is commanded ([`Master::quick_stop`]).
+    pub fn quick_stopping(&self) -> bool {
+        self.quick_stop
+    }
+
+    /// Quick stops commanded since start-up.
+    pub fn quick_stops(&self) -> u32 {
+        self.quick_stops
     }
 
     /// The controller's CAN interface went bus-off (and was restarted by the caller): every
@@ -1135,7 +1165,17 @@ impl Master {
             if d.role == Role::Leg || d.boot != BootState::Started {
                 continue;
             }
-            let (cw, target) = match self.homing_command(i) {
+            let quick_stop = self.quick_stop.then(|| {
+                let state = d.state402();
+                let cw = match state {
+                    Some(State402::OperationEnabled | State402::QuickStopActive) => {
+                        ds402::CW_QUICK_STOP_CMD
+                    }
+                    _ => ds402::master_controlword(state, false, false, false, d.controlword),
+                };
+                (cw, 0)
+            });
+            let (cw, target) = match quick_stop.or_else(|| self.homing_command(i)) {
                 Some(c) => c,
                 None => {
                     let sp = setpoints.get(d.wheel).copied().unwrap_or_default();
@@ -2061,6 +2101,75 @@ mod tests {
             ModuleState::Ready,
             "steer drive not enabled yet"
         );
+    }
+
+    #[test]
+    fn quick_stop_commands_enabled_drives_until_re_armed_and_enables_none() {
+        let cfg = no_homing(1);
+        let mut m = Master::new(&cfg, 0.004);
+        let mut dev = devices(&cfg);
+        run_boot(&mut m, &mut dev, 100);
+        let sp = Setpoint {
+            wheel_speed: 1.0,
+            steer_rate: 0.0,
+            flags: SetpointFlags {
+                enable: true,
+                brake: false,
+                fault_reset: false,
+            },
+        };
+        // One cycle: the rolling drive reports `state`; the master's controlword and target.
+        let step = |m: &mut Master, state: State402, t: f64| -> (u16, i32) {
+            let sw = pdo::DRIVE_TPDO2.pack(1, &[u32::from(state.statusword_bits())]);
+            m.on_frame(&sw, t).unwrap();
+            let mut buf = FrameBuf::new();
+            m.finish_cycle(t, &[sp], &mut buf);
+            let rpdo = buf.as_slice().iter().find(|f| f.id() == 0x201).unwrap();
+            let v = pdo::DRIVE_RPDO1.unpack(rpdo).unwrap();
+            (v[0] as u16, v[1] as i32)
+        };
+        assert_eq!(
+            step(&mut m, State402::OperationEnabled, 1.0),
+            (0x0F, 78_228)
+        );
+        assert!(!m.quick_stopping());
+        m.quick_stop();
+        m.quick_stop();
+        assert_eq!(m.quick_stops(), 1, "one quick stop, however often asked");
+        // Enabled: Quick Stop (0x0002) and a zero target, which the drive decodes as the
+        // quick stop command (transition 11), and keeps getting while it ramps down.
+        let (cw, target) = step(&mut m, State402::OperationEnabled, 1.004);
+        assert_eq!((cw, target), (ds402::CW_QUICK_STOP_CMD, 0));
+        assert_eq!(
+            ds402::device_transition(
+                State402::OperationEnabled,
+                ds402::decode_controlword(cw, 0x0F)
+            ),
+            State402::QuickStopActive
+        );
+        assert_eq!(
+            step(&mut m, State402::QuickStopActive, 1.008),
+            (ds402::CW_QUICK_STOP_CMD, 0)
+        );
+        // At rest the drive went on to switch on disabled (option 2): it is not enabled
+        // again, whatever the setpoints say.
+        for (k, state) in [State402::SwitchOnDisabled, State402::ReadyToSwitchOn]
+            .into_iter()
+            .enumerate()
+        {
+            let (cw, target) = step(&mut m, state, 1.012 + 0.004 * k as f64);
+            assert_eq!(target, 0);
+            assert_eq!(cw, ds402::CW_SHUTDOWN, "{state:?}");
+        }
+        // The re-arm lifts it: a drive held in quick stop active (options 5-8) is disabled
+        // (transition 12), then walked up again.
+        m.rearm(2.0);
+        assert!(!m.quick_stopping());
+        assert_eq!(
+            step(&mut m, State402::QuickStopActive, 2.0).0,
+            ds402::CW_DISABLE_VOLTAGE
+        );
+        assert_eq!(step(&mut m, State402::SwitchOnDisabled, 2.004).0, 0x06);
     }
 
     #[test]
