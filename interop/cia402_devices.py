@@ -438,6 +438,9 @@ def main():
                     d.node.emcy.send(code, 0)
                 else:
                     d.fault(code, reg)
+            elif parts[0] == "set":
+                # A value set otherwise at the factory: set NODE INDEX SUB VALUE.
+                devices[int(parts[1])].put(int(parts[2], 0), int(parts[3], 0), int(parts[4], 0))
             elif parts[0] == "powercycle":
                 devices[int(parts[1])].power_on()
             elif parts[0] == "debug":

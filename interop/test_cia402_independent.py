@@ -204,6 +204,25 @@ def test_a_fault_emcy_stops_the_base_with_the_error_code_read_back(bridge, devic
     assert "0x603F reads 0x2310" in reason, reason
 
 
+def test_a_drive_with_another_velocity_unit_is_refused_at_boot_naming_0x60A9(bridge, devices, tmp_path):
+    """Drive 3's SI unit velocity (0x60A9) is rev/min (0x00B44700); the platform file converts
+    from increments per second: the boot stops before anything is enabled, naming the object,
+    the value read and what the file expects."""
+    host, port, _ = bridge
+    devices.send("set 3 0x60A9 0 0x00B44700")
+    drive = Drive(f"socketcand://{host}:{port}/vcan0", platform_file(tmp_path), tmp_path / "drive.log")
+    try:
+        drive.wait_for("fault: ")
+        code, summary, log = drive.finish()
+    finally:
+        drive.kill()
+    assert code == 1, log
+    reason = summary["fault_reason"]
+    for needle in ("node 3", "0x60A9:00", "reads 0xB44700", "expected 0xB50300", "rev/min", "inc/s"):
+        assert needle in reason, (needle, reason)
+    assert "state: tracking" not in log, log
+
+
 def test_rollbase_sdo_reads_and_writes_the_independent_devices(bridge, devices):
     host, port, _ = bridge
     url = f"socketcand://{host}:{port}/vcan0"

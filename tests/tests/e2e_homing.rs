@@ -11,7 +11,7 @@ use rollbase_control::record::CycleRecord;
 use rollbase_control::scenario::Scenario;
 use rollbase_control::supervisor::{FaultReason, SupervisorState};
 use rollbase_control::{Platform, Protocol, MAX_WHEELS};
-use rollbase_driver::canopen::config::{Homing, HomingKind, Role};
+use rollbase_driver::canopen::config::{ExtraSdo, Homing, HomingKind, Role};
 use rollbase_driver::canopen::master::{BootError, DeviceFault, HomingError};
 use rollbase_driver::canopen::nmt::NmtState;
 use rollbase_tests::{
@@ -441,4 +441,95 @@ fn a_power_cycled_steering_drive_is_homed_again_on_re_arm() {
             .any(|e| e.node == 4 && e.code == 0xFF01 && e.register == 0),
         "{d:?}"
     );
+}
+
+/// Mirrored motors (mounted so that the motor's positive direction turns the joint the
+/// negative way; the twin models the mounting and the drives' polarity 0x607E) run seed 000
+/// within its bounds, homing included, when the platform file says so: wheel 2's rolling and
+/// steering drives with polarity 0x607E = 0xC0 (position and velocity inverted) written at
+/// boot by [[cia402.sdo]]; or every motor mirrored and the platform's gear ratios negative.
+#[test]
+fn mirrored_motors_compensated_by_polarity_or_a_negative_ratio_run_seed000() {
+    // 0x607E on one wheel's drives.
+    let mut p = platform(drive_method(19), EDGES);
+    let mut c = p.cia402.take().expect("cia402");
+    for node in [3, 4] {
+        c.sdo.push(ExtraSdo {
+            role: None,
+            node: Some(node),
+            index: 0x607E,
+            sub: 0,
+            value: 0xC0,
+            size: 1,
+            optional: false,
+        });
+    }
+    p.cia402 = Some(c);
+    p.validate().expect("valid");
+    let mut t = twin(|i| switch_axis(i, true, 0.0));
+    t.mirrored = vec![3, 4];
+    mirrored_seed000(p, t, "wheel 2 mirrored, 0x607E = 0xC0");
+    // Negative ratios for every rolling and steering drive, every motor mirrored.
+    let mut p = platform(drive_method(19), EDGES);
+    let mut c = p.cia402.take().expect("cia402");
+    c.drive.gear_ratio = -c.drive.gear_ratio;
+    c.steer.gear_ratio = -c.steer.gear_ratio;
+    p.cia402 = Some(c);
+    p.validate().expect("a negative gear ratio is valid");
+    let mut t = twin(|i| switch_axis(i, true, 0.0));
+    t.mirrored = (1..=8).collect();
+    mirrored_seed000(p, t, "all mirrored, negative ratios");
+}
+
+fn mirrored_seed000(p: Platform, twin: TwinConfig, what: &str) {
+    let mut opts = RunOptions::new(Scenario::Seed000).cia402();
+    // The simulated machine: the same drives (its units are the machine's, the sign is the
+    // mounting, `twin.mirrored`).
+    opts.sim_platform = Some(p.clone());
+    opts.platform = Some(p);
+    opts.twin = twin;
+    opts.initial_steer = Some(random_angles(7));
+    opts.slack_s = 40.0;
+    let out = run(&opts);
+    println!("{what}: {}", out.summary.to_json());
+    assert_seed000_bounds(&out);
+    assert_angles_true(&out, what);
+}
+
+/// A mirrored motor the platform file does not know about (wheel 2's rolling drive, or its
+/// steering drive; no 0x607E, no negative ratio): the drive's own feedback agrees with its
+/// command, so homing and the rest turn pass, but the wheel turns the other way; the
+/// odometry's residual between the wheels (slip) catches it once the base moves, and the
+/// platform stops before it got far from its path.
+#[test]
+fn an_uncompensated_mirrored_motor_is_caught_before_the_base_drives_off() {
+    for node in [3u8, 4] {
+        let p = platform(drive_method(19), EDGES);
+        let mut t = twin(|i| switch_axis(i, true, 0.0));
+        t.mirrored = vec![node];
+        let mut opts = RunOptions::new(Scenario::Seed000).cia402();
+        opts.sim_platform = Some(p.clone());
+        opts.platform = Some(p);
+        opts.twin = t;
+        opts.initial_steer = Some(random_angles(7));
+        opts.slack_s = 40.0;
+        let out = run(&opts);
+        let f = first_fault(&out);
+        let text = f.reason.expect("reason").to_string();
+        println!(
+            "node {node} mirrored: fault at {:.2} s: {text}; max position error {:.3} m",
+            f.t, out.summary.max_position_error_m
+        );
+        assert!(
+            matches!(f.reason, Some(FaultReason::Slip { .. })),
+            "node {node}: {text}"
+        );
+        // Stopped within 10 cm of the path (seed 000 runs 4.5 m each way).
+        assert!(
+            out.summary.max_position_error_m < 0.1,
+            "node {node}: {} m off the path",
+            out.summary.max_position_error_m
+        );
+        assert_eq!(out.summary.final_state, "fault");
+    }
 }

@@ -217,7 +217,7 @@ pub enum BootError {
         timeout_ms: u16,
     },
     /// A value read back is not what the platform file expects.
-    #[error("node {node} ({role}): 0x{index:04X}:{sub:02X} {what} reads 0x{got:X}, expected 0x{expected:X}; {}", mismatch_hint(*index))]
+    #[error("node {node} ({role}): 0x{index:04X}:{sub:02X} {what} reads 0x{got:X}, expected 0x{expected:X}; {}", mismatch_hint(*index, *got, *expected))]
     Mismatch {
         /// Node-ID.
         node: u8,
@@ -278,12 +278,17 @@ pub enum BootError {
     },
 }
 
-fn mismatch_hint(index: u16) -> &'static str {
+fn mismatch_hint(index: u16, got: u32, expected: u32) -> String {
     match index {
-        od::DEVICE_TYPE | od::MEASURING_STEP => "is this the right device at this node-ID?",
-        od::POSITION_ENCODER_RESOLUTION => "set the platform file's increments_per_rev to the drive's encoder resolution (or the drive's 0x608F to the platform file's)",
-        od::GEAR_RATIO => "set the drive's gear ratio (0x6091) to 1:1; the platform file's gear_ratio converts",
-        _ => "check the platform file against the drive's configuration",
+        od::DEVICE_TYPE | od::MEASURING_STEP => "is this the right device at this node-ID?".into(),
+        od::POSITION_ENCODER_RESOLUTION => "set the platform file's increments_per_rev to the drive's encoder resolution (or the drive's 0x608F to the platform file's)".into(),
+        od::GEAR_RATIO => "set the drive's gear ratio (0x6091) to 1:1; the platform file's gear_ratio converts".into(),
+        od::SI_UNIT_VELOCITY => format!(
+            "the drive's velocity objects (0x60FF, 0x606C) are in {} but the platform file converts from {}: set velocity_unit to the drive's unit, or the drive's 0x60A9 to 0x{expected:08X} (a [[cia402.sdo]] entry, where the drive allows it)",
+            super::units::describe_si_velocity(got),
+            super::units::describe_si_velocity(expected)
+        ),
+        _ => "check the platform file against the drive's configuration".into(),
     }
 }
 
@@ -1883,6 +1888,7 @@ mod tests {
                                 (od::POSITION_ENCODER_RESOLUTION, 1) => 16384,
                                 (od::POSITION_ENCODER_RESOLUTION, 2) => 1,
                                 (od::GEAR_RATIO, _) => 1,
+                                (od::SI_UNIT_VELOCITY, 0) => 0x00B5_0300,
                                 (od::MEASURING_STEP, 1) => 1000,
                                 _ => 0,
                             };
@@ -2370,7 +2376,13 @@ mod tests {
         let drive = &m.devices()[0];
         assert_eq!(
             drive.skipped(),
-            &[(0x1803, 1), (0x608F, 1), (0x6091, 1), (0x6091, 2)]
+            &[
+                (0x1803, 1),
+                (0x608F, 1),
+                (0x608F, 2),
+                (0x6091, 1),
+                (0x6091, 2)
+            ]
         );
         // A mandatory object missing still fails the boot.
         let mut m = Master::new(&cfg, 0.004);
