@@ -2331,6 +2331,9 @@ mod tests {
             let mut r = Rig::enabled_drive(Role::Steer);
             r.write(od::ABORT_CONNECTION_OPTION, 0, SdoData::i16(option))
                 .unwrap();
+            // Quick stop option 6: ramp down, then stay in quick stop active (with 2, the
+            // factory's, a drive at rest goes on to switch on disabled at once).
+            r.write(od::QUICK_STOP_OPTION, 0, SdoData::i16(6)).unwrap();
             let deadline = u64::from(Cia402Config::default().rpdo_timeout_ms);
             r.rpdo1(0x0F, 0);
             r.advance(at_ms(deadline));
