@@ -40,6 +40,7 @@ macro_rules! err {
 mod monitor;
 mod ros2cmd;
 mod rt;
+mod sdo;
 mod service;
 mod sinks;
 mod teleop;
@@ -133,6 +134,9 @@ enum Command {
     Drive(DriveArgs),
     /// Decode frames live from a bus or from a candump log, one line per frame.
     Monitor(MonitorArgs),
+    /// Read or write one object of a CANopen device (expedited or segmented SDO), for
+    /// bring-up and diagnosis; refused while a master runs on the bus.
+    Sdo(sdo::SdoArgs),
     /// Plot a recording to PNG files.
     Plot(PlotArgs),
     /// Rewrite a recording left without index and summary (killed writer) into a new file.
@@ -254,6 +258,7 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
         Command::Run(a) => trajectory::run_bus(a),
         Command::Drive(a) => service::drive(a),
         Command::Monitor(a) => monitor::monitor(a),
+        Command::Sdo(a) => sdo::sdo(a),
         Command::Bridge(a) => Ok(crate::bridge::run(a)?),
         Command::Recover(a) => ros2cmd::recover(a),
         Command::Ros2Selftest(a) => ros2cmd::selftest(a),
@@ -332,13 +337,29 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
         }
         Command::Config { cmd } => match cmd {
             ConfigCmd::Check { file } => {
-                let p = Platform::load(&file)?;
+                let (p, eds) = Platform::load_checked(&file)?;
                 outln!(
                     "# {}: valid platform `{}` with {} wheels",
                     file.display(),
                     p.name,
                     p.n()
                 );
+                for (node, role, path, product, dcf) in &eds.devices {
+                    outln!(
+                        "# node {node} ({role}): boot plan checked against {path} ({product}){}",
+                        if *dcf > 0 {
+                            format!(", {dcf} DCF values written at boot")
+                        } else {
+                            String::new()
+                        }
+                    );
+                }
+                for (node, index, sub, why) in &eds.skipped {
+                    outln!(
+                        "# node {node}: DCF value of 0x{index:04X}:{sub:02X} not written ({})",
+                        why.reason()
+                    );
+                }
                 out!("{}", p.to_toml_string());
                 Ok(0)
             }

@@ -413,7 +413,10 @@ fn serve(
             .name("rollbase-state".into())
             .spawn(move || {
                 while let Ok(st) = state_rx.recv() {
-                    if st.state == SupervisorState::Tracking {
+                    // Ready: tracking, or faulted before it could (a device that did not boot
+                    // or home): the sources run from then on, so a `rearm` clears a boot-time
+                    // fault and the end of the stream ends the run whatever its state.
+                    if matches!(st.state, SupervisorState::Tracking | SupervisorState::Fault) {
                         ready.set();
                     }
                     if let Some(tx) = &node_tx {

@@ -245,6 +245,9 @@ pub fn run_realtime_io(
         // cycle waits for the window's end anyway).
         core.start_cycle(td, &mut out);
         drain(bus, core, td - 1e-6, &mut report);
+        // What the late answers made due (CiA 402: a device's next SDO request) goes out
+        // with the SYNC, not a cycle later.
+        core.after_late_frames(td, &mut out);
         send_all(bus, core, &out, &mut report);
         sleep_until(deadline + window_ns);
         let now_rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
