@@ -65,6 +65,40 @@ pub(crate) fn recover(a: RecoverArgs) -> Result<i32, CliError> {
     for (t, n) in &rep.messages {
         errln!("  {t:<24} {n}");
     }
+    if !rep.skipped.is_empty() {
+        errln!(
+            "{}: skipped {} damaged region(s) of the input (nothing of them is in the output; every intact chunk after them is):",
+            a.file.display(),
+            rep.skipped.len() as u64 + rep.skipped_more
+        );
+        for s in &rep.skipped {
+            let times = match s.log_times {
+                Some((a, b)) if a <= b => format!(
+                    "; its header gives messages logged from {:.3} s to {:.3} s",
+                    a as f64 * 1e-9,
+                    b as f64 * 1e-9
+                ),
+                _ => String::new(),
+            };
+            errln!(
+                "  bytes {}..{} ({} bytes): {}{times}",
+                s.offset,
+                s.offset + s.length,
+                s.length,
+                s.reason
+            );
+        }
+        if rep.skipped_more > 0 {
+            errln!("  … and {} more", rep.skipped_more);
+        }
+    }
+    if rep.orphaned > 0 {
+        errln!(
+            "{}: {} messages of intact chunks were dropped: their channel was defined only in a damaged region",
+            a.file.display(),
+            rep.orphaned
+        );
+    }
     outln!("{}", out.display());
     Ok(0)
 }
