@@ -1057,16 +1057,17 @@ fn config(a: &BridgeArgs) -> Result<BridgeConfig, BridgeError> {
     })
 }
 
-/// Resolves when Ctrl-C (SIGINT) or SIGTERM arrives.
+/// Resolves when Ctrl-C (SIGINT), SIGTERM, SIGHUP (the terminal went away) or SIGQUIT arrives.
 async fn stop_signal() {
-    let term = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+    use tokio::signal::unix::SignalKind;
+    let one = |kind: SignalKind, name: &'static str| async move {
+        match tokio::signal::unix::signal(kind) {
             Ok(mut s) => {
                 s.recv().await;
-                info!("SIGTERM: stopping");
+                info!("{name}: stopping");
             }
             Err(e) => {
-                warn!("cannot listen for SIGTERM ({e}); only Ctrl-C stops the bridge cleanly");
+                warn!("cannot listen for {name} ({e}); it ends the bridge without its totals");
                 std::future::pending::<()>().await
             }
         }
@@ -1078,7 +1079,9 @@ async fn stop_signal() {
                 warn!("cannot listen for Ctrl-C ({e}); stopping");
             }
         },
-        _ = term => {}
+        _ = one(SignalKind::terminate(), "SIGTERM") => {}
+        _ = one(SignalKind::hangup(), "SIGHUP") => {}
+        _ = one(SignalKind::quit(), "SIGQUIT") => {}
     }
 }
 

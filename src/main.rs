@@ -53,6 +53,10 @@ fn main() {
         // too large"), a recording failure the run reports and stops on, instead of SIGXFSZ
         // killing the process with its recording unfinished.
         libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+        // SIGUSR1 and SIGUSR2 mean nothing to rollbase; their default action would end the
+        // process without a controlled stop (and lose the recording's index).
+        libc::signal(libc::SIGUSR1, libc::SIG_IGN);
+        libc::signal(libc::SIGUSR2, libc::SIG_IGN);
     }
     init_logging();
     let cli = app::Cli::parse();
