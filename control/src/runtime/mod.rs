@@ -38,7 +38,7 @@ pub use self::realtime::{
     realtime_setup, run_realtime, run_realtime_io, RealtimeIo, RealtimeOptions, RealtimeReport,
     MAX_COMMANDS_PER_CYCLE,
 };
-pub use self::summary::{percentile, RunSummary};
+pub use self::summary::{percentile, RunSummary, TimeHistogram};
 
 use crate::avoidance::AvoidanceConfig;
 use crate::num::{Fixed3, Num};
