@@ -215,7 +215,7 @@ pub(crate) fn selftest(a: SelftestArgs) -> Result<i32, CliError> {
         )?),
         None => None,
     };
-    let (cmd_tx, cmd_rx) = std::sync::mpsc::sync_channel::<CommandEvent>(64);
+    let (cmd_tx, cmd_rx) = rollbase_control::runtime::command_channel(64, 16);
     let (state_tx, state_rx) = std::sync::mpsc::sync_channel::<BaseState>(16);
     let origin = Instant::now();
     let node = spawn_node(opts.clone(), cmd_tx, state_rx, origin)?;
@@ -246,7 +246,9 @@ pub(crate) fn selftest(a: SelftestArgs) -> Result<i32, CliError> {
     let mut next = Instant::now();
     let mut warned = false;
     while !stop.load(Ordering::SeqCst) && origin.elapsed().as_secs_f64() < a.duration {
-        while let Ok(ev) = cmd_rx.try_recv() {
+        let mut taken = Vec::new();
+        cmd_rx.take(usize::MAX, |ev| taken.push(ev));
+        for ev in taken {
             outln!("{}", command_json(&ev));
             match ev.kind {
                 CommandKind::Stop => state = SupervisorState::Stopped,

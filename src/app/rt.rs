@@ -2,15 +2,15 @@
 //! the calling thread (a failed write stops the run in a controlled way), the in-process
 //! simulator of the demos, and the report.
 
-use rollbase_control::ports::{BaseState, CommandEvent};
+use rollbase_control::ports::BaseState;
 use rollbase_control::record::CycleRecord;
 use rollbase_control::runtime::{
-    run_realtime_io, CycleCore, RealtimeIo, RealtimeOptions, RealtimeReport,
+    run_realtime_io, CommandReceiver, CycleCore, RealtimeIo, RealtimeOptions, RealtimeReport,
 };
 use rollbase_driver::bus::CanBus;
 use rollbase_vcan_sim::Simulator;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{Receiver, SyncSender};
+use std::sync::mpsc::SyncSender;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -24,7 +24,7 @@ pub(crate) const RECORD_QUEUE: usize = 2048;
 #[derive(Default)]
 pub(crate) struct Ports<'a> {
     /// Commands in (the base service).
-    pub(crate) commands: Option<Receiver<CommandEvent>>,
+    pub(crate) commands: Option<CommandReceiver>,
     /// State out (the base service's consumers).
     pub(crate) states: Option<&'a SyncSender<BaseState>>,
 }

@@ -49,6 +49,8 @@ pub struct RunSummary {
     pub rejected_commands: u64,
     /// Valid commands ignored because the platform was not following commands.
     pub ignored_commands: u64,
+    /// Motion commands dropped because the command queue was full (real time).
+    pub dropped_commands: u64,
     /// Largest angle between the reference's and the executed direction of travel (base
     /// frame) while both moved faster than [`DIRECTION_MIN_SPEED`] and the platform tracked
     /// (rad).
@@ -166,6 +168,7 @@ impl RunSummary {
         self.command_timeouts = r.commands.timeouts;
         self.rejected_commands = r.commands.rejected;
         self.ignored_commands = r.commands.ignored;
+        self.dropped_commands = r.commands.dropped;
         let halted = matches!(
             r.shaping.limiting,
             crate::ports::Limiting::Timeout | crate::ports::Limiting::Stop
@@ -323,6 +326,7 @@ impl RunSummary {
             "command_timeouts": self.command_timeouts,
             "rejected_commands": self.rejected_commands,
             "ignored_commands": self.ignored_commands,
+            "dropped_commands": self.dropped_commands,
             "max_direction_error_deg": f(self.max_direction_error_rad.to_degrees()),
             "stop_time_s": self.stop_time_s.map(f),
             "duration_nominal_s": self.timing.map(|t| f(t.nominal_duration_s)),
