@@ -593,6 +593,84 @@ fn the_bridge_and_the_monitor_end_cleanly_on_sighup_and_sigquit() {
 }
 
 // ---------------------------------------------------------------------------------------------
+// Finding 11: real-time priority where the cycle's frames pass
+// ---------------------------------------------------------------------------------------------
+
+/// (scheduling policy, real-time priority) of a thread, from /proc (fields 41 and 40 of stat).
+fn sched_of(stat_path: &str) -> (u32, u32) {
+    let stat = std::fs::read_to_string(stat_path).unwrap_or_default();
+    let f: Vec<&str> = stat
+        .rsplit_once(')')
+        .map(|x| x.1)
+        .unwrap_or("")
+        .split_whitespace()
+        .collect();
+    let n = |i: usize| f.get(i).and_then(|v| v.parse().ok()).unwrap_or(u32::MAX);
+    (n(38), n(37))
+}
+
+#[test]
+fn the_bridge_asks_for_real_time_priority_below_the_controller_and_the_simulator() {
+    let _s = serial();
+    // SAFETY: geteuid has no preconditions.
+    let root = unsafe { libc::geteuid() } == 0;
+    for (extra, want) in [(vec![], Some(60u32)), (vec!["--priority", "0"], None)] {
+        let mut bridge = Proc::spawn(
+            rollbase()
+                .args(["bridge", "--listen", "127.0.0.1:0"])
+                .args(&extra),
+        );
+        bridge.wait_for("listening");
+        let (policy, prio) = sched_of(&format!("/proc/{}/stat", bridge.pid()));
+        let log = bridge.stderr();
+        match want {
+            Some(p) if root => assert_eq!(
+                (policy, prio),
+                (libc::SCHED_FIFO as u32, p),
+                "{extra:?}: as root the bridge runs SCHED_FIFO {p}:\n{log}"
+            ),
+            Some(_) => assert!(
+                policy == libc::SCHED_FIFO as u32 || log.contains("not permitted"),
+                "{extra:?}: FIFO, or it says why not:\n{log}"
+            ),
+            None => assert_eq!(policy, libc::SCHED_OTHER as u32, "{extra:?}: {log}"),
+        }
+        bridge.signal(libc::SIGTERM);
+        let (status, _, _) = bridge.wait();
+        assert_eq!(status.code(), Some(0));
+    }
+}
+
+#[test]
+fn the_in_process_simulator_shares_one_cpu_with_the_cycle_thread() {
+    let _s = serial();
+    let mut p = live_demo(&[]);
+    let mut cpus = std::collections::BTreeMap::new();
+    for t in std::fs::read_dir(format!("/proc/{}/task", p.pid()))
+        .unwrap()
+        .flatten()
+    {
+        let dir = t.path();
+        let comm = std::fs::read_to_string(dir.join("comm")).unwrap_or_default();
+        let status = std::fs::read_to_string(dir.join("status")).unwrap_or_default();
+        let allowed = status
+            .lines()
+            .find_map(|l| l.strip_prefix("Cpus_allowed_list:"))
+            .map(|v| v.trim().to_string())
+            .unwrap_or_default();
+        cpus.insert(comm.trim().to_string(), allowed);
+    }
+    p.signal(libc::SIGTERM);
+    let (status, _, err) = p.wait();
+    assert_eq!(status.code(), Some(0), "{err}");
+    let (sim, cycle) = (&cpus["rollbase-sim"], &cpus["rollbase-cycle"]);
+    assert!(
+        sim == cycle && sim.parse::<usize>().is_ok(),
+        "simulator on {sim:?}, cycle on {cycle:?}: one and the same CPU ({cpus:?})"
+    );
+}
+
+// ---------------------------------------------------------------------------------------------
 // Finding 9: remote frames in a capture
 // ---------------------------------------------------------------------------------------------
 

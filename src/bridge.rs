@@ -136,6 +136,14 @@ pub struct BridgeArgs {
     /// default: never; a quiet listener on a quiet channel stays connected).
     #[arg(long, value_name = "S", default_value_t = 0.0)]
     idle_timeout: f64,
+    /// SCHED_FIFO priority of the bridge's thread (1–99; 0: normal scheduling). Default 60,
+    /// below the controller's cycle thread (80) and the simulator (81): the bridge carries
+    /// their frames, and at normal priority a busy machine holds them back for many
+    /// milliseconds (a stale-feedback fault at 16 ms). The channel rate cap bounds what a
+    /// flood can take at this priority. Needs root, CAP_SYS_NICE or an rtprio limit; without
+    /// it the bridge says so and runs with normal scheduling.
+    #[arg(long, value_name = "PRIO", default_value_t = 60, value_parser = clap::value_parser!(i32).range(0..=99))]
+    priority: i32,
 }
 
 /// Why the bridge could not run.
@@ -1114,6 +1122,17 @@ pub fn run(a: BridgeArgs) -> Result<i32, BridgeError> {
             value: iface.clone(),
             reason: r.into(),
         })?;
+    }
+    if a.priority > 0 {
+        // On this (the runtime's only) thread, before the runtime starts.
+        let opts = rollbase_control::runtime::RealtimeOptions {
+            fifo_priority: Some(a.priority),
+            lock_memory: false,
+            max_cycles: None,
+        };
+        for line in rollbase_control::runtime::realtime_setup(&opts) {
+            info!("{}", line.replace("cycle thread", "bridge thread"));
+        }
     }
     let rt = runtime().map_err(BridgeError::Runtime)?;
     rt.block_on(async {

@@ -32,7 +32,7 @@ use std::sync::mpsc::TrySendError;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use super::rt::{print_report, run_cycle, wall_bus, Ports, SimThread};
+use super::rt::{poll_recv, print_report, run_cycle, wall_bus, Ports, SimThread};
 use super::sinks::{OutputPlan, Sinks};
 use super::trajectory::{finish, run_demo_lockstep, DemoArgs};
 use super::{
@@ -586,6 +586,7 @@ fn serve(
     common: &CommonRun,
     on_state: Option<StateConsumer>,
     ros2: Option<Ros2Options>,
+    cpu: Option<usize>,
 ) -> Result<(), CliError> {
     let (cmd_tx, cmd_rx) = command_channel(MOTION_QUEUE, PRIORITY_LANE);
     let (state_tx, state_rx) = std::sync::mpsc::sync_channel::<BaseState>(STATE_QUEUE);
@@ -634,7 +635,13 @@ fn serve(
         std::thread::Builder::new()
             .name("rollbase-state".into())
             .spawn(move || {
-                while let Ok(st) = state_rx.recv() {
+                // Polled, never blocked on: see `rt::poll_recv` (the cycle sends on it).
+                loop {
+                    let st = match poll_recv(&state_rx, Duration::from_secs(1)) {
+                        Ok(st) => st,
+                        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => continue,
+                        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
+                    };
                     if st.state == SupervisorState::Tracking {
                         ready.set();
                     }
@@ -666,6 +673,7 @@ fn serve(
         Ports {
             commands: Some(cmd_rx),
             states: Some(&state_tx),
+            cpu,
         },
         s.origin,
         &mut |r, _| status.take(r),
@@ -718,7 +726,7 @@ pub(crate) fn drive(a: DriveArgs) -> Result<i32, CliError> {
         signalled,
         origin,
     };
-    serve(&mut s, canbus.as_mut(), source, &a.common, None, ros2)?;
+    serve(&mut s, canbus.as_mut(), source, &a.common, None, ros2, None)?;
     finish(
         s.sinks,
         &s.core,
@@ -830,13 +838,22 @@ pub(crate) fn demo_live(a: DemoArgs) -> Result<i32, CliError> {
         )),
         (false, source) => {
             let (mut ctrl, sim_node) = wall_bus();
-            let _sim = SimThread::start(sim, sim_node)?;
+            let sim = SimThread::start(sim, sim_node)?;
             let on_state: Option<StateConsumer> = if a.teleop {
                 Some(super::teleop::status_line())
             } else {
                 None
             };
-            serve(&mut s, &mut ctrl, source, &a.common, on_state, ros2)?;
+            serve(
+                &mut s,
+                &mut ctrl,
+                source,
+                &a.common,
+                on_state,
+                ros2,
+                sim.cpu(),
+            )?;
+            drop(sim);
         }
     }
     finish(

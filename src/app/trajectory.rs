@@ -276,7 +276,10 @@ pub(crate) fn run_demo_realtime(
         &mut ctrl_node,
         sinks,
         stop,
-        Ports::default(),
+        Ports {
+            cpu: _sim.cpu(),
+            ..Ports::default()
+        },
         origin,
         &mut |r, sinks| {
             if show && last_print.elapsed() > Duration::from_millis(200) {

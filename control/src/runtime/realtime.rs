@@ -189,6 +189,11 @@ pub fn run_realtime(
 /// blocking — every stop, re-arm, end of stream and shutdown first, then at most
 /// [`MAX_COMMANDS_PER_CYCLE`] motion commands ([`super::command_channel`]) — and stamped with
 /// the time the cycle took them.
+///
+/// The consumers of `records` and `states` should poll (`try_recv`) rather than block in
+/// `recv`: a receiver blocked in `recv` registers with the channel's waker, and the cycle's
+/// `try_send` then takes the waker's mutex to wake it — a lock shared with a normal-priority
+/// thread that a busy machine may preempt while it holds it.
 #[derive(Default)]
 pub struct RealtimeIo<'a> {
     /// Where cycle records go.
