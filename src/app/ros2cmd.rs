@@ -47,7 +47,7 @@ fn default_recovered(file: &std::path::Path) -> PathBuf {
 pub(crate) fn recover(a: RecoverArgs) -> Result<i32, CliError> {
     let out = a.out.clone().unwrap_or_else(|| default_recovered(&a.file));
     let rep = rollbase::record::recover(&a.file, &out)?;
-    if rep.had_footer && rep.stopped.is_none() {
+    if rep.had_footer && rep.stopped.is_none() && rep.skipped.is_empty() && rep.orphaned == 0 {
         errln!(
             "{}: the recording was complete; copied {} messages",
             a.file.display(),
