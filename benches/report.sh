@@ -11,7 +11,10 @@
 # Only the live section (after changing the shaper, say), the rest of the report kept:
 #   cargo bench -p rollbase-tests --bench live -- --warm-up-time 1 --measurement-time 3 \
 #     --noplot | tee target/perf/bench-live.log
-#   target/release/perf-report --section live --bench-log target/perf/bench-live.log
+#   cargo bench -p rollbase-tests --bench flow -- --warm-up-time 1 --measurement-time 3 \
+#     --noplot | tee target/perf/bench-flow.log
+#   target/release/perf-report --section live --bench-log target/perf/bench-live.log \
+#     --bench-log target/perf/bench-flow.log
 #
 # For a meaningful report run it on an otherwise idle machine. The baseline is
 # cyclictest from rt-tests (Debian: apt-get install rt-tests); without it perf-report
@@ -33,6 +36,7 @@ cargo bench -j"$JOBS" -p rollbase-driver --bench codec -- "${CRIT_ARGS[@]}" | te
 cargo bench -j"$JOBS" -p rollbase-tests --bench control_step -- "${CRIT_ARGS[@]}" | tee "$LOGDIR/bench-control.log"
 cargo bench -j"$JOBS" -p rollbase-tests --bench cycle_core -- "${CRIT_ARGS[@]}" | tee "$LOGDIR/bench-cycle-core.log"
 cargo bench -j"$JOBS" -p rollbase-tests --bench live -- "${CRIT_ARGS[@]}" | tee "$LOGDIR/bench-live.log"
+cargo bench -j"$JOBS" -p rollbase-tests --bench flow -- "${CRIT_ARGS[@]}" | tee "$LOGDIR/bench-flow.log"
 "$TARGET_DIR/release/perf-report" \
   --out docs/performance.md \
   --criterion "$TARGET_DIR/criterion" \
@@ -40,6 +44,7 @@ cargo bench -j"$JOBS" -p rollbase-tests --bench live -- "${CRIT_ARGS[@]}" | tee 
   --bench-log "$LOGDIR/bench-control.log" \
   --bench-log "$LOGDIR/bench-cycle-core.log" \
   --bench-log "$LOGDIR/bench-live.log" \
+  --bench-log "$LOGDIR/bench-flow.log" \
   --cycles "$CYCLES"
 # The ROS 2 section (cmd_vel latency, cost of drive --ros2): DDS only in a private network
 # namespace with loopback alone (discovery multicasts). perf-report keeps the section it finds.

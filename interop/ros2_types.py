@@ -168,3 +168,60 @@ class TriggerResponse(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Response
     sequence_number: int64 = 0
     success: bool = False
     message: str = ""
+
+
+# rcl_interfaces' parameter services (issue 26), in rmw_cyclonedds' request/reply layout.
+@dataclass
+class ListParametersRequest(IdlStruct, typename="rcl_interfaces::srv::dds_::ListParameters_Request_"):
+    client_guid: uint64 = 0
+    sequence_number: int64 = 0
+    prefixes: sequence[str] = field(default_factory=list)
+    depth: uint64 = 0
+
+
+@dataclass
+class ListParametersResponse(IdlStruct, typename="rcl_interfaces::srv::dds_::ListParameters_Response_"):
+    client_guid: uint64 = 0
+    sequence_number: int64 = 0
+    names: sequence[str] = field(default_factory=list)
+    prefixes: sequence[str] = field(default_factory=list)
+
+
+@dataclass
+class ParameterValue(IdlStruct, typename="rcl_interfaces::msg::dds_::ParameterValue_"):
+    type: uint8 = 0
+    bool_value: bool = False
+    integer_value: int64 = 0
+    double_value: float64 = 0.0
+    string_value: str = ""
+    byte_array_value: sequence[uint8] = field(default_factory=list)
+    bool_array_value: sequence[bool] = field(default_factory=list)
+    integer_array_value: sequence[int64] = field(default_factory=list)
+    double_array_value: sequence[float64] = field(default_factory=list)
+    string_array_value: sequence[str] = field(default_factory=list)
+
+
+@dataclass
+class Parameter(IdlStruct, typename="rcl_interfaces::msg::dds_::Parameter_"):
+    name: str = ""
+    value: ParameterValue = field(default_factory=ParameterValue)
+
+
+@dataclass
+class SetParametersResult(IdlStruct, typename="rcl_interfaces::msg::dds_::SetParametersResult_"):
+    successful: bool = False
+    reason: str = ""
+
+
+@dataclass
+class SetParametersRequest(IdlStruct, typename="rcl_interfaces::srv::dds_::SetParameters_Request_"):
+    client_guid: uint64 = 0
+    sequence_number: int64 = 0
+    parameters: sequence[Parameter] = field(default_factory=list)
+
+
+@dataclass
+class SetParametersResponse(IdlStruct, typename="rcl_interfaces::srv::dds_::SetParameters_Response_"):
+    client_guid: uint64 = 0
+    sequence_number: int64 = 0
+    results: sequence[SetParametersResult] = field(default_factory=list)

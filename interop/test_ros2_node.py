@@ -69,12 +69,19 @@ class SelfTest:
         )
         self.lines = queue.Queue()
         self.commands = []
+        self.stderr_lines = []
         threading.Thread(target=self._read, daemon=True).start()
+        # Drained so that a chatty log never fills the pipe and blocks the node's threads.
+        threading.Thread(target=self._read_stderr, daemon=True).start()
         self.ready = self.next_json(lambda j: j.get("ready"), timeout=20)
 
     def _read(self):
         for line in self.p.stdout:
             self.lines.put(line)
+
+    def _read_stderr(self):
+        for line in self.p.stderr:
+            self.stderr_lines.append(line)
 
     def next_json(self, pred, timeout=10.0):
         end = time.monotonic() + timeout
@@ -88,8 +95,9 @@ class SelfTest:
                 self.commands.append(j)
             if pred(j):
                 return j
-        err = self.p.stderr.read() if self.p.poll() is not None else "(still running)"
-        raise AssertionError(f"selftest printed nothing matching in {timeout} s; stderr: {err}")
+        state = "exited" if self.p.poll() is not None else "still running"
+        err = "".join(self.stderr_lines[-40:])
+        raise AssertionError(f"selftest printed nothing matching in {timeout} s ({state}); stderr: {err}")
 
     def stop(self):
         self.p.stdin.close()

@@ -12,16 +12,27 @@ use std::io::Write as _;
 
 /// Installs the log subscriber: `tracing` events go to stderr, filtered by `RUST_LOG`
 /// (default `info`; e.g. `RUST_LOG=debug` adds one line per client event of the bridge).
+/// The DDS stack's `log` records (rustdds) are bridged into the same output (tracing-log),
+/// under their module paths, at `error` unless `RUST_LOG` names `rustdds`:
+/// `RUST_LOG=info,rustdds=warn` shows its warnings (on a loopback without multicast it warns
+/// about its own built-in readers many times a second, hence the quiet default).
 /// Writing never fails the program: the fmt layer drops lines stderr does not take (a closed
 /// pipe, a full disk) and, with `log_internal_errors(false)`, does not report that on stderr
 /// either (that report would itself fail). Calling it twice is harmless.
 pub fn init_logging() {
     use std::io::IsTerminal as _;
     use tracing_subscriber::EnvFilter;
+    const DEFAULT: &str = "info,rustdds=error";
+    let value = std::env::var("RUST_LOG").unwrap_or_default();
     let (filter, bad) = match EnvFilter::try_from_default_env() {
-        Ok(f) => (f, None),
+        Ok(f) if value.contains("rustdds") => (f, None),
+        Ok(_) if value.trim().is_empty() => (EnvFilter::new(DEFAULT), None),
+        Ok(f) => match "rustdds=error".parse() {
+            Ok(d) => (f.add_directive(d), None),
+            Err(_) => (f, None),
+        },
         Err(e) => (
-            EnvFilter::new("info"),
+            EnvFilter::new(DEFAULT),
             std::env::var("RUST_LOG").ok().map(|v| (v, e)),
         ),
     };
@@ -37,7 +48,7 @@ pub fn init_logging() {
     if let (true, Some((value, e))) = (installed, bad) {
         // An empty RUST_LOG is "unset", not an error worth a line.
         if !value.trim().is_empty() {
-            tracing::warn!("RUST_LOG={value:?} is not a valid filter ({e}); logging at info");
+            tracing::warn!("RUST_LOG={value:?} is not a valid filter ({e}); logging at {DEFAULT}");
         }
     }
 }

@@ -207,6 +207,40 @@ pub fn held_wheels(p: &Platform, r: &ReferenceSample) -> [bool; MAX_WHEELS] {
     held
 }
 
+/// How far above [`crate::limits::HOLD_SPEED`] (as a multiple of it) a wheel's steering
+/// blends from the reference's angle to its own direction of travel.
+pub const HOLD_BLEND: f64 = 2.0;
+
+/// Per wheel, how much of its steering comes from its own direction of travel (1) rather
+/// than the reference's steering angle (0), with a steering reference: 0 below
+/// [`crate::limits::HOLD_SPEED`] ([`held_wheels`]), rising linearly to 1 at (1 +
+/// [`HOLD_BLEND`]) × that speed of the reference's contact speed. Near rest the direction of
+/// the commanded velocity is mostly the feedback's correction, which swings without bound as
+/// the reference's speed goes to zero; the reference says where the wheel rolls. The blend
+/// makes the hand-over between the two continuous. Without a steering reference, 1.
+pub fn steer_weights(p: &Platform, r: &ReferenceSample) -> [f64; MAX_WHEELS] {
+    let mut w = [1.0; MAX_WHEELS];
+    if !r.steer.valid {
+        return w;
+    }
+    let tw = r.twist_world();
+    let hold = crate::limits::HOLD_SPEED;
+    for (i, wi) in w
+        .iter_mut()
+        .enumerate()
+        .take(p.n().min(r.n).min(MAX_WHEELS))
+    {
+        let u = wheel_velocity_body(p, i, r.z[2], r.z[3 + i], &tw, r.dz[3 + i]);
+        let sp = u[0].hypot(u[1]);
+        *wi = if sp.is_nan() {
+            0.0
+        } else {
+            ((sp - hold) / (HOLD_BLEND * hold)).clamp(0.0, 1.0)
+        };
+    }
+    w
+}
+
 /// Steering-rate command of a held wheel ([`held_wheels`]): the reference's steering rate
 /// plus `steer_kp` × the angle error.
 pub fn held_steer_rate(p: &Platform, r: &ReferenceSample, i: usize, phi_meas: f64) -> f64 {
@@ -611,6 +645,7 @@ impl DflController {
         let acc = [v[0], v[1], v[2]];
         let vel = [tw.vx, tw.vy, tw.omega];
         let held = held_wheels(p, r);
+        let weight = steer_weights(p, r);
         let mut min_speed = f64::INFINITY;
         for j in 0..n {
             let u0 = wheel_velocity_body(p, j, theta, legs[j], &tw, eta_leg_old[j]);
@@ -620,10 +655,16 @@ impl DflController {
             }
             let du =
                 wheel_acceleration_body(p, j, theta, legs[j], eta_leg_old[j], u_leg[j], vel, acc);
-            let (rate, _) = if held[j] {
-                (held_steer_rate(p, r, j, phis[j]), 0.0)
+            let rate = if held[j] {
+                held_steer_rate(p, r, j, phis[j])
             } else {
-                coordinated_steer(u0, du, phis[j], g.steer_kp)
+                let own = coordinated_steer(u0, du, phis[j], g.steer_kp).0;
+                let wj = weight[j];
+                if wj < 1.0 {
+                    wj * own + (1.0 - wj) * held_steer_rate(p, r, j, phis[j])
+                } else {
+                    own
+                }
             };
             let phi_mid = phis[j] + rate * h;
             let um = wheel_velocity_body(

@@ -11,12 +11,17 @@
 //!    ([`crate::model`]), plus `steer_kp`·(angle error).
 //! 4. ±π branch chosen **for the whole platform**: a single flip flag; it toggles (with
 //!    hysteresis) only when the largest steering error under the current branch exceeds
-//!    π/2 + `FLIP_HYSTERESIS` and the other branch is better. No wheel flips alone.
+//!    π/2 + `FLIP_HYSTERESIS` and the other branch is better. No wheel flips alone. With a
+//!    steering reference ([`crate::types::SteerReference`]: live commands, time-scaled
+//!    trajectories) each wheel rolls on the branch of the reference's steering angle instead:
+//!    the reference is continuous and already says which way each wheel rolls (after a
+//!    reversal through zero on a line, a wheel rolls backwards while the others roll on).
 //! 5. Wheels whose contact speed is below [`crate::dfl::REST_SPEED`] hold their angle; with a
 //!    steering reference, wheels whose *reference* contact speed is below
 //!    [`crate::limits::HOLD_SPEED`] follow the reference's angle and rate instead
 //!    ([`crate::dfl::held_wheels`]): the feedback's small corrections never turn a wheel the
-//!    ICR rests on.
+//!    ICR rests on; up to three times that speed the two are blended
+//!    ([`crate::dfl::steer_weights`]), so the hand-over is continuous.
 //! 6. Rolling speed = ± |u_i| cos(e_i) for steering error |e_i| < π/2, else 0: a wheel
 //!    that still points the wrong way does not roll, and rolls fully once aligned.
 //! 7. Desaturation (seed 004 Sect. on actuator limits, α_s scaling; WPILib
@@ -153,6 +158,7 @@ impl KinematicController {
         let mut min_speed = f64::INFINITY;
         let mut fastest = (0usize, -1.0);
         let held = crate::dfl::held_wheels(p, r);
+        let weight = crate::dfl::steer_weights(p, r);
         for i in 0..n {
             let leg = m.wheels[i].leg;
             let u = wheel_velocity_body(p, i, pose.theta, leg, &tw, cmdv[3 + i]);
@@ -202,16 +208,35 @@ impl KinematicController {
         if cur > FRAC_PI_2 + FLIP_HYSTERESIS && worst(!self.flip) < cur {
             self.flip = !self.flip;
         }
-        let (off, sign) = if self.flip { (PI, -1.0) } else { (0.0, 1.0) };
+        let (off0, sign0) = if self.flip { (PI, -1.0) } else { (0.0, 1.0) };
         // 5.–6. steering and rolling
         for i in 0..n {
             let phi = m.wheels[i].steer_angle;
+            // With a steering reference each wheel rolls on the reference's branch (a wheel
+            // whose velocity passed through zero on a line rolls backwards: its own branch).
+            let (off, sign) = if r.steer.valid && moving[i] {
+                if angle::diff(target[i], r.steer.angle[i]).abs() > FRAC_PI_2 {
+                    (PI, -1.0)
+                } else {
+                    (0.0, 1.0)
+                }
+            } else {
+                (off0, sign0)
+            };
             let (rate, roll) = if held[i] {
                 (crate::dfl::held_steer_rate(p, r, i, phi), speed[i])
             } else if moving[i] {
                 let e = angle::diff(target[i] + off, phi);
                 let scale = if e.abs() < FRAC_PI_2 { e.cos() } else { 0.0 };
-                (ff[i] + g.steer_kp * e, sign * speed[i] * scale)
+                let own = ff[i] + g.steer_kp * e;
+                // Near the hold speed, blended with the reference's angle (dfl::steer_weights).
+                let w = weight[i];
+                let rate = if w < 1.0 {
+                    w * own + (1.0 - w) * crate::dfl::held_steer_rate(p, r, i, phi)
+                } else {
+                    own
+                };
+                (rate, sign * speed[i] * scale)
             } else {
                 (0.0, speed[i])
             };

@@ -149,6 +149,13 @@ pub const MAX_EXECUTED_S: f64 = crate::trajectory::MAX_WAYPOINT_TIME_S;
 /// A platform whose fastest wheel moves slower than this along the path (m/s at ṡ = 1) is at
 /// rest there (its wheels' directions are taken from the neighbouring points).
 const REST_W: f64 = 1e-9;
+/// Speed (m/s) of the fastest wheel at the clock's cap below which the platform is near a
+/// stop: its wheels' directions of travel are not steered by, they blend from the one before
+/// to the one after (the clock slows to let them turn within their limits: a planned dwell
+/// at a near stop, [`ScaledTrajectory::dwells`]).
+pub const NEAR_REST: f64 = 0.5 * HOLD_SPEED;
+/// Longest travel (m) of the platform along a near stop.
+pub const NEAR_REST_TRAVEL: f64 = 0.005;
 /// Direction change (rad) between two grid points beyond what the steering rate explains
 /// that is examined as a possible kink.
 const KINK_SUSPECT: f64 = 0.05;
@@ -248,8 +255,14 @@ pub struct ScaleStatus {
 pub struct Timing {
     /// Duration of the trajectory as given (s).
     pub nominal_duration_s: f64,
-    /// Duration of the scaled trajectory (s).
+    /// Duration of the scaled trajectory (s), its dwells included.
     pub executed_duration_s: f64,
+    /// Duration of the time-optimal timing of the path's motions (s): the passes' timing
+    /// before the jerk smoothing, without the dwells ([`Timing::dwell_s`]).
+    pub optimal_duration_s: f64,
+    /// Planned dwells in all (s): the clock held at the path's stops while the wheels
+    /// re-steer ([`ScaledTrajectory::dwells`]).
+    pub dwell_s: f64,
     /// Smallest ṡ.
     pub min_scale: f64,
     /// Executed time (s) of the smallest ṡ.
@@ -439,7 +452,7 @@ fn angle_mod_pi(a: [f64; 2], b: [f64; 2]) -> f64 {
 }
 
 impl Grid {
-    /// The base grid, refined where a wheel's direction turns by more than
+    /// The base grid of the path from τ `a` to `b`, refined where a wheel's direction turns by more than
     /// [`REFINE_ANGLE`] between two points or its contact velocity passes close to zero
     /// between them (the linearised closest approach, as the shaper refines its grid).
     fn build(
@@ -447,18 +460,20 @@ impl Grid {
         inner: &dyn Trajectory,
         cfg: &TimeScaleConfig,
         n: usize,
-        nominal: f64,
+        a: f64,
+        b: f64,
     ) -> Result<Self, TimeScaleError> {
-        let base = if nominal > 0.0 {
-            ((nominal / GRID_STEP).ceil() as usize).clamp(1, MAX_GRID / 2)
+        let len = b - a;
+        let base = if len > 0.0 {
+            ((len / GRID_STEP).ceil() as usize).clamp(1, MAX_GRID / 2)
         } else {
             0
         };
         let tau_base = |j: usize| {
             if j >= base {
-                nominal
+                b
             } else {
-                nominal * j as f64 / base as f64
+                a + len * j as f64 / base as f64
             }
         };
         let mut g = Grid {
@@ -563,7 +578,7 @@ struct Blend {
     coef: [f64; 6],
 }
 
-/// The steering geometry of the path: per wheel, the angle along τ (module docs).
+/// The steering geometry of a piece of the path: per wheel, the angle along τ (module docs).
 #[derive(Clone, Debug, Default)]
 struct SteerGeometry {
     taus: Vec<f64>,
@@ -571,6 +586,75 @@ struct SteerGeometry {
     angle: Vec<f64>,
     /// Per wheel: the blends, sorted.
     blends: Vec<Vec<Blend>>,
+}
+
+impl SteerGeometry {
+    /// Moves wheel `i`'s angles by `d` (a multiple of π: the other branch of the same
+    /// directions).
+    fn shift(&mut self, n: usize, i: usize, d: f64) {
+        for j in 0..self.taus.len() {
+            self.angle[j * n + i] += d;
+        }
+        for b in &mut self.blends[i] {
+            b.coef[0] += d;
+        }
+    }
+}
+
+/// One motion of the path between two of its stops (or its ends): its grid, steering
+/// geometry and clock (module docs, "Stops and dwells").
+#[derive(Clone, Debug)]
+struct Piece {
+    /// Path times of its start and end (s).
+    tau0: f64,
+    tau1: f64,
+    /// Executed time of its start (s).
+    t0: f64,
+    /// Executed duration (s).
+    duration: f64,
+    /// ṡ ≡ 1 on the whole piece: τ = tau0 + (t − t0).
+    pass: bool,
+    /// Clock knots (empty when `pass`): time from `t0`, τ, ṡ, s̈.
+    kt: Vec<f64>,
+    ktau: Vec<f64>,
+    kv: Vec<f64>,
+    ka: Vec<f64>,
+    /// Per grid point: the binding limit and its wheel, and whether the clock runs below
+    /// its cap there.
+    reason: Vec<(Limiting, u8, bool)>,
+    geo: SteerGeometry,
+    /// Whether the piece needs a steering reference (a wheel held while the platform moves).
+    steer: bool,
+    /// Duration of the time-optimal timing on the grid (s), before the jerk smoothing.
+    optimal: f64,
+    /// Smallest ṡ where something moves: (ṡ, executed time from `t0`, limit, wheel).
+    min: (f64, f64, Limiting, usize),
+    /// Largest demand over its share found by the verification.
+    max_ratio: f64,
+    /// The near stops (times from `t0`, s): where the platform passes a near stop and the
+    /// clock slows to let the wheels re-steer (reported with the dwells).
+    near: Vec<(f64, f64)>,
+}
+
+/// A planned dwell (module docs, "Stops and dwells"): the clock holds at a stop of the path
+/// while the wheels steer from the direction they stopped in to the one they start in.
+#[derive(Clone, Debug)]
+struct Dwell {
+    /// Executed start (s) and duration (s).
+    t0: f64,
+    duration: f64,
+    /// The stop's path times (equal for a stop at a point; a stand otherwise).
+    tau0: f64,
+    tau1: f64,
+    /// Per wheel, the steering angle as a quintic in (t − t0).
+    steer: [[f64; 6]; MAX_WHEELS],
+}
+
+/// What runs at an executed time.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Span {
+    Piece(usize),
+    Dwell(usize),
 }
 
 /// A trajectory run on a clock chosen so that every actuator stays within its share of its
@@ -581,17 +665,14 @@ pub struct ScaledTrajectory {
     n: usize,
     nominal: f64,
     executed: f64,
-    /// ṡ ≡ 1: samples are the inner trajectory's.
+    /// One piece with ṡ ≡ 1 and no dwell: samples are the inner trajectory's.
     pass: bool,
-    /// Clock knots: time, τ, ṡ, s̈ (empty when `pass`).
-    kt: Vec<f64>,
-    ktau: Vec<f64>,
-    kv: Vec<f64>,
-    ka: Vec<f64>,
-    /// Per grid point: the binding limit and its wheel, and whether the clock runs below
-    /// its cap there.
-    reason: Vec<(Limiting, u8, bool)>,
-    geo: SteerGeometry,
+    pieces: Vec<Piece>,
+    dwells: Vec<Dwell>,
+    /// Executed start of every piece and dwell, in order.
+    spans: Vec<(f64, Span)>,
+    /// The dwells as executed-time intervals (s).
+    dwell_spans: Vec<(f64, f64)>,
     steer: bool,
     timing: Timing,
 }
@@ -601,6 +682,7 @@ impl std::fmt::Debug for ScaledTrajectory {
         f.debug_struct("ScaledTrajectory")
             .field("timing", &self.timing)
             .field("pass_through", &self.pass)
+            .field("dwells", &self.dwell_spans)
             .finish_non_exhaustive()
     }
 }
@@ -632,21 +714,9 @@ struct Point {
     acc: Vec<Acc>,
 }
 
-impl Point {
-    fn upper(&self, x: f64) -> f64 {
-        self.acc
-            .iter()
-            .map(|k| {
-                let (_, (r, s)) = k.bounds();
-                r + s * x
-            })
-            .fold(f64::INFINITY, f64::min)
-    }
-}
-
-/// The steering rate (rad/s) a scaled reference may have at its start and end: the change
-/// the steering acceleration share allows in one control cycle (the wheels stand still
-/// before and after, their steering at rest).
+/// The steering rate (rad/s) a scaled reference may have where it starts or ends without a
+/// stop of the path (the platform already moving: the change the steering acceleration share
+/// allows in one control cycle).
 fn start_steer_rate(p: &Platform, cfg: &TimeScaleConfig) -> f64 {
     cfg.accel_fraction * p.limits.steer_accel * p.dt()
 }
@@ -658,8 +728,16 @@ const X_FLOOR: f64 = 1e-300;
 /// its window, which can add a few per cent where the constraints change within it.
 const SMOOTHING_MARGIN: f64 = 0.9;
 
-/// The constraints of every grid point (module docs, "What a timing asks").
-fn constraints(p: &Platform, cfg: &TimeScaleConfig, n: usize, g: &Grid) -> Vec<Point> {
+/// The constraints of every grid point of a piece (module docs, "What a timing asks");
+/// `open` says which of its ends (start, end) is not a stop of the path (the steering rate
+/// there is bounded by one cycle's change: nothing re-steers the wheels there).
+fn constraints(
+    p: &Platform,
+    cfg: &TimeScaleConfig,
+    n: usize,
+    g: &Grid,
+    open: (bool, bool),
+) -> Vec<Point> {
     let l = &p.limits;
     let rw = p.wheel_radius;
     let (fv, fa) = (cfg.speed_fraction, cfg.accel_fraction * SMOOTHING_MARGIN);
@@ -667,9 +745,7 @@ fn constraints(p: &Platform, cfg: &TimeScaleConfig, n: usize, g: &Grid) -> Vec<P
     (0..points)
         .map(|j| {
             let mut xbar = g.caps[j] * g.caps[j];
-            if j == 0 || j + 1 == points {
-                // The wheels start from rest and end at rest without steering: the steering
-                // rate may start and end with at most one cycle's change.
+            if (j == 0 && open.0) || (j + 1 == points && open.1) {
                 let r0 = start_steer_rate(p, cfg);
                 for i in 0..n {
                     let rate = g.geo[j * n + i].rate.abs();
@@ -740,6 +816,40 @@ fn constraints(p: &Platform, cfg: &TimeScaleConfig, n: usize, g: &Grid) -> Vec<P
         .collect()
 }
 
+/// The exact stops of a path (module docs, "Stops and dwells"): the trajectory's own
+/// ([`Trajectory::stops`]) and its ends where the platform rests there, sorted and merged,
+/// within [0, `nominal`].
+fn stops_of(p: &Platform, inner: &dyn Trajectory, n: usize, nominal: f64) -> Vec<(f64, f64)> {
+    let at_rest = |tau: f64| {
+        let r = inner.sample(tau);
+        (0..n).all(|i| {
+            let u = contact_kinematics(p, i, &r)[0];
+            u[0].hypot(u[1]) <= REST_W
+        }) && (0..3 + n).all(|c| r.dz[c].abs() <= REST_W)
+    };
+    let mut v: Vec<(f64, f64)> = inner
+        .stops()
+        .into_iter()
+        .filter(|(a, b)| a.is_finite() && b.is_finite() && a <= b)
+        .map(|(a, b)| (a.clamp(0.0, nominal), b.clamp(0.0, nominal)))
+        .collect();
+    if at_rest(0.0) {
+        v.push((0.0, 0.0));
+    }
+    if nominal > 0.0 && at_rest(nominal) {
+        v.push((nominal, nominal));
+    }
+    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut out: Vec<(f64, f64)> = Vec::with_capacity(v.len());
+    for (a, b) in v {
+        match out.last_mut() {
+            Some(last) if a <= last.1 => last.1 = last.1.max(b),
+            _ => out.push((a, b)),
+        }
+    }
+    out
+}
+
 /// Checks what no timing can fix (module docs, "What no timing can fix"): a duration beyond
 /// [`MAX_EXECUTED_S`], a leg out of its range, a moving wheel whose direction jumps.
 pub fn check_fixable(
@@ -753,9 +863,116 @@ pub fn check_fixable(
         return Err(TimeScaleError::Duration { duration: nominal });
     }
     let n = p.n().min(traj.n_legs()).min(MAX_WHEELS);
-    let mut grid = Grid::build(p, traj, cfg, n, nominal)?;
-    steering_geometry(p, traj, cfg, n, &mut grid)?;
+    for part in layout(&stops_of(p, traj, n, nominal), nominal) {
+        if let Part::Motion { a, b, .. } = part {
+            let mut grid = Grid::build(p, traj, cfg, n, a, b)?;
+            steering_geometry(p, traj, cfg, n, &mut grid)?;
+        }
+    }
     Ok(())
+}
+
+/// A part of the path in the order it runs: a motion between stops, or a stop.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Part {
+    /// A motion from τ `a` to `b`; whether it starts and ends at a stop.
+    Motion {
+        a: f64,
+        b: f64,
+        from_stop: bool,
+        to_stop: bool,
+    },
+    /// A stop from τ `a` to `b` (equal: a stop at a point).
+    Stop { a: f64, b: f64 },
+}
+
+/// The path's parts in order: motions between the stops. A path that never moves is one
+/// motion (of no consequence: nothing moves on it).
+fn layout(stops: &[(f64, f64)], nominal: f64) -> Vec<Part> {
+    let mut out = Vec::with_capacity(2 * stops.len() + 1);
+    let (mut cur, mut rest) = (0.0, false);
+    for &(a, b) in stops {
+        if a > cur {
+            out.push(Part::Motion {
+                a: cur,
+                b: a,
+                from_stop: rest,
+                to_stop: true,
+            });
+        }
+        out.push(Part::Stop { a, b });
+        cur = b;
+        rest = true;
+    }
+    if cur < nominal {
+        out.push(Part::Motion {
+            a: cur,
+            b: nominal,
+            from_stop: rest,
+            to_stop: false,
+        });
+    }
+    if !out.iter().any(|p| matches!(p, Part::Motion { .. })) {
+        return vec![Part::Motion {
+            a: 0.0,
+            b: nominal,
+            from_stop: false,
+            to_stop: false,
+        }];
+    }
+    out
+}
+
+/// Steering state (angle, rate, acceleration) in executed time.
+type SteerState = (f64, f64, f64);
+
+/// The shortest duration (s) of a dwell from steering state `from` to the state `to(d)`
+/// (which may depend on the duration) whose quintic keeps the steering rate within
+/// `rate` and its acceleration within `accel` (0 when the states already agree).
+fn dwell_duration(
+    from: SteerState,
+    to: &dyn Fn(f64) -> SteerState,
+    rate: f64,
+    accel: f64,
+    dt: f64,
+) -> f64 {
+    let fits = |d: f64| {
+        let e = to(d);
+        let c = quintic(from.0, from.1, from.2, e.0, e.1, e.2, d);
+        (0..=64).all(|k| {
+            let (_, v, a, _) = eval_quintic(&c, d * k as f64 / 64.0);
+            v.abs() <= rate && a.abs() <= accel
+        })
+    };
+    let e = to(0.0);
+    let tol = 1e-9;
+    if (e.0 - from.0).abs() <= tol && (e.1 - from.1).abs() <= tol && (e.2 - from.2).abs() <= tol {
+        return 0.0;
+    }
+    let mut hi = 2.0 * dt;
+    let mut tries = 0;
+    while !fits(hi) {
+        hi *= 2.0;
+        tries += 1;
+        if tries > 40 {
+            return hi;
+        }
+    }
+    let mut lo = if hi > 2.0 * dt { 0.5 * hi } else { return hi };
+    for _ in 0..40 {
+        let m = 0.5 * (lo + hi);
+        if fits(m) {
+            hi = m;
+        } else {
+            lo = m;
+        }
+        if hi - lo <= 1e-4 * hi {
+            break;
+        }
+    }
+    // A whole number of microseconds above the shortest: the quintic is checked at 65
+    // points, which the bisection's last step may straddle.
+    hi * 1.001
 }
 
 impl ScaledTrajectory {
@@ -772,13 +989,317 @@ impl ScaledTrajectory {
             return Err(TimeScaleError::Duration { duration: nominal });
         }
         let n = p.n().min(inner.n_legs()).min(MAX_WHEELS);
-        let mut grid = Grid::build(p, inner.as_ref(), &cfg, n, nominal)?;
-        let (sgeo, steer) = steering_geometry(p, inner.as_ref(), &cfg, n, &mut grid)?;
-        let base = constraints(p, &cfg, n, &grid);
+        let parts = layout(&stops_of(p, inner.as_ref(), n, nominal), nominal);
+        let mut pieces: Vec<Piece> = Vec::with_capacity(parts.len());
+        let mut optimal = 0.0;
+        for part in &parts {
+            if let Part::Motion {
+                a,
+                b,
+                from_stop,
+                to_stop,
+            } = *part
+            {
+                let piece = Piece::plan(p, inner.as_ref(), &cfg, n, a, b, (!from_stop, !to_stop))?;
+                optimal += piece.optimal;
+                if optimal.is_nan() || optimal > MAX_EXECUTED_S {
+                    return Err(piece_too_slow(p, &cfg, inner.as_ref(), n, &piece, optimal));
+                }
+                pieces.push(piece);
+            }
+        }
+        // Every piece on the branch of its wheels' directions nearest the one before it.
+        for k in 1..pieces.len() {
+            for i in 0..n {
+                let end = pieces[k - 1].end_angle(n, i);
+                let start = pieces[k].start_angle(i);
+                let d = ((end - start) / PI).round() * PI;
+                if d != 0.0 && d.is_finite() {
+                    pieces[k].geo.shift(n, i, d);
+                }
+            }
+        }
+        // The parts in order: pieces on their clocks, dwells at the stops.
+        let rate = cfg.speed_fraction * p.limits.steer_rate;
+        let accel = cfg.accel_fraction * p.limits.steer_accel;
+        let mut dwells = Vec::new();
+        let mut spans = Vec::with_capacity(parts.len());
+        let mut t = 0.0;
+        let mut index = Vec::with_capacity(parts.len());
+        let mut k = 0;
+        for part in &parts {
+            index.push(match part {
+                Part::Motion { .. } => {
+                    k += 1;
+                    Some(k - 1)
+                }
+                Part::Stop { .. } => None,
+            });
+        }
+        for (m, part) in parts.iter().enumerate() {
+            match *part {
+                Part::Motion { .. } => {
+                    let q = index[m].unwrap_or(0);
+                    pieces[q].t0 = t;
+                    spans.push((t, Span::Piece(q)));
+                    t += pieces[q].duration;
+                }
+                Part::Stop { a, b } => {
+                    let before = m.checked_sub(1).and_then(|j| index[j]);
+                    let after = index.get(m + 1).copied().flatten();
+                    // A stand whose duration is given lasts at least that long.
+                    let stand = if b > a && inner.timed_at(0.5 * (a + b)) {
+                        b - a
+                    } else {
+                        0.0
+                    };
+                    let mut ends = [((0.0, 0.0, 0.0), None); MAX_WHEELS];
+                    let mut longest = stand;
+                    for i in 0..n {
+                        let from = before.map(|q| pieces[q].steer_end(p, inner.as_ref(), n, i));
+                        let to = after.map(|q| pieces[q].steer_start(p, inner.as_ref(), n, i));
+                        // The path's start: from rest at the angle it starts with; its end:
+                        // the steering comes to rest, its rate falling evenly.
+                        let f = match (from, to) {
+                            (Some(f), _) => f,
+                            (None, Some(e)) => (e.0, 0.0, 0.0),
+                            (None, None) => (0.0, 0.0, 0.0),
+                        };
+                        let target = |d: f64| to.unwrap_or((f.0 + 0.5 * f.1 * d, 0.0, 0.0));
+                        longest = longest.max(dwell_duration(f, &target, rate, accel, p.dt()));
+                        ends[i] = (f, to);
+                    }
+                    if longest > 0.0 {
+                        let mut steer = [[0.0; 6]; MAX_WHEELS];
+                        for i in 0..n {
+                            let (f, to) = ends[i];
+                            let e = to.unwrap_or((f.0 + 0.5 * f.1 * longest, 0.0, 0.0));
+                            steer[i] = quintic(f.0, f.1, f.2, e.0, e.1, e.2, longest);
+                        }
+                        spans.push((t, Span::Dwell(dwells.len())));
+                        dwells.push(Dwell {
+                            t0: t,
+                            duration: longest,
+                            tau0: a,
+                            tau1: b,
+                            steer,
+                        });
+                        t += longest;
+                    }
+                }
+            }
+        }
+        let executed = t;
+        let dwell_s: f64 = dwells.iter().map(|d| d.duration).sum();
+        if executed.is_nan() || executed > MAX_EXECUTED_S {
+            let slowest = (0..pieces.len())
+                .min_by(|&a, &b| pieces[a].min.0.total_cmp(&pieces[b].min.0))
+                .unwrap_or(0);
+            return Err(piece_too_slow(
+                p,
+                &cfg,
+                inner.as_ref(),
+                n,
+                &pieces[slowest],
+                executed,
+            ));
+        }
+        let pass = pieces.len() == 1 && pieces[0].pass && dwells.is_empty();
+        let steer = !pass || pieces.iter().any(|q| q.steer);
+        let mut min = (f64::INFINITY, 0.0, Limiting::None, 0usize);
+        let mut max_ratio = 0.0f64;
+        for q in &pieces {
+            if q.min.0 < min.0 {
+                min = (q.min.0, q.t0 + q.min.1, q.min.2, q.min.3);
+            }
+            max_ratio = max_ratio.max(q.max_ratio);
+        }
+        // The dwells and the near stops, in order (overlapping ones merged).
+        let mut all: Vec<(f64, f64)> = dwells.iter().map(|d| (d.t0, d.t0 + d.duration)).collect();
+        for q in &pieces {
+            all.extend(q.near.iter().map(|&(a, b)| (q.t0 + a, q.t0 + b)));
+        }
+        all.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut dwell_spans: Vec<(f64, f64)> = Vec::with_capacity(all.len());
+        for (a, b) in all {
+            match dwell_spans.last_mut() {
+                Some(last) if a <= last.1 => last.1 = last.1.max(b),
+                _ => dwell_spans.push((a, b)),
+            }
+        }
+        Ok(ScaledTrajectory {
+            inner,
+            platform: p.clone(),
+            n,
+            nominal,
+            executed,
+            pass,
+            pieces,
+            dwells,
+            spans,
+            dwell_spans,
+            steer,
+            timing: Timing {
+                nominal_duration_s: nominal,
+                executed_duration_s: executed,
+                optimal_duration_s: optimal,
+                dwell_s,
+                min_scale: if min.0.is_finite() { min.0 } else { 1.0 },
+                min_scale_at_s: min.1,
+                limiting: if min.0 < 1.0 - 1e-9 {
+                    min.2
+                } else {
+                    Limiting::None
+                },
+                wheel: min.3,
+                max_ratio,
+                steer_reference: steer,
+            },
+        })
+    }
+
+    /// The trajectory being scaled.
+    pub fn inner(&self) -> &dyn Trajectory {
+        self.inner.as_ref()
+    }
+
+    /// True when ṡ ≡ 1: the samples are the inner trajectory's.
+    pub fn is_pass_through(&self) -> bool {
+        self.pass
+    }
+
+    /// The planned dwells (module docs, "Stops and dwells"): executed-time intervals (s) in
+    /// which the clock holds at a stop of the path while the wheels re-steer, and those in
+    /// which it passes a near stop slowly for the same reason.
+    pub fn dwells(&self) -> &[(f64, f64)] {
+        &self.dwell_spans
+    }
+
+    /// Largest demand over its share at one instant ([`Piece::ratio`] of the piece whose path
+    /// times hold the clock's τ; a dwell asks nothing of the rolling drives).
+    #[cfg(test)]
+    fn ratio(
+        &self,
+        cfg: &TimeScaleConfig,
+        r: &ReferenceSample,
+        clk: (f64, f64, f64, f64),
+    ) -> (f64, Limiting, usize, bool) {
+        self.pieces
+            .iter()
+            .find(|q| q.tau0 <= clk.0 && clk.0 <= q.tau1)
+            .map_or((0.0, Limiting::None, 0, true), |q| {
+                q.ratio(&self.platform, self.n, cfg, r, clk)
+            })
+    }
+
+    /// What runs at executed time `t` (clamped into the run) and the time into it.
+    fn locate(&self, t: f64) -> (Span, f64) {
+        let k = self.spans.partition_point(|s| s.0 <= t).max(1) - 1;
+        match self.spans.get(k) {
+            Some(&(t0, s)) => (s, (t - t0).max(0.0)),
+            None => (Span::Piece(0), t.max(0.0)),
+        }
+    }
+
+    /// The clock: (τ, ṡ, s̈, s⃛) at executed time `t` (before the start: the start; after
+    /// the end: the end, at rest; in a dwell: held at the stop).
+    pub fn clock(&self, t: f64) -> (f64, f64, f64, f64) {
+        let t = if t.is_finite() { t } else { 0.0 };
+        if self.pass {
+            return (t.clamp(0.0, self.nominal), 1.0, 0.0, 0.0);
+        }
+        if t >= self.executed {
+            return (self.nominal, 0.0, 0.0, 0.0);
+        }
+        match self.locate(t) {
+            (Span::Dwell(k), dt) => {
+                let d = &self.dwells[k];
+                let v = if d.duration > 0.0 {
+                    (d.tau1 - d.tau0) / d.duration
+                } else {
+                    0.0
+                };
+                ((d.tau0 + v * dt).min(d.tau1), v, 0.0, 0.0)
+            }
+            (Span::Piece(k), dt) => self.pieces[k].clock(dt),
+        }
+    }
+
+    /// The scaled sample at `t` and the inner sample at its path time, with the clock.
+    fn sample_full(&self, t: f64) -> (ReferenceSample, ReferenceSample, (f64, f64, f64, f64)) {
+        let clk = self.clock(t);
+        let (tau, v, a, j) = clk;
+        let r = self.inner.sample(if self.pass { t } else { tau });
+        let mut s = r;
+        if !self.pass {
+            s.t = t;
+            for c in 0..3 + self.n {
+                s.dz[c] = r.dz[c] * v;
+                s.ddz[c] = r.ddz[c] * v * v + r.dz[c] * a;
+                s.dddz[c] = r.dddz[c] * v * v * v + 3.0 * r.ddz[c] * v * a + r.dz[c] * j;
+            }
+        }
+        if self.steer {
+            let mut sr = SteerReference {
+                valid: true,
+                ..SteerReference::default()
+            };
+            let t = if t.is_finite() { t } else { 0.0 };
+            // After the end: where the last span left the steering, at rest.
+            let end = t >= self.executed;
+            let (span, dt) = if end {
+                match self.spans.last() {
+                    Some(&(t0, s)) => (s, t - t0),
+                    None => (Span::Piece(0), t),
+                }
+            } else {
+                self.locate(t)
+            };
+            match span {
+                Span::Dwell(k) => {
+                    let d = &self.dwells[k];
+                    for i in 0..self.n {
+                        let (phi, d1, d2, _) = eval_quintic(&d.steer[i], dt.min(d.duration));
+                        sr.angle[i] = phi;
+                        sr.rate[i] = if end { 0.0 } else { d1 };
+                        sr.accel[i] = if end { 0.0 } else { d2 };
+                    }
+                }
+                Span::Piece(k) => {
+                    let q = &self.pieces[k];
+                    for i in 0..self.n {
+                        let (phi, d1, d2) = q.steer_at(&self.platform, self.n, i, tau, &r);
+                        sr.angle[i] = phi;
+                        sr.rate[i] = d1 * v;
+                        sr.accel[i] = d2 * v * v + d1 * a;
+                    }
+                }
+            }
+            s.steer = sr;
+        }
+        (s, r, clk)
+    }
+}
+
+impl Piece {
+    /// Plans the clock of the path from τ `a` to `b` (module docs, "Planning"); `open` as
+    /// for [`constraints`].
+    #[allow(clippy::too_many_arguments)]
+    fn plan(
+        p: &Platform,
+        inner: &dyn Trajectory,
+        cfg: &TimeScaleConfig,
+        n: usize,
+        a: f64,
+        b: f64,
+        open: (bool, bool),
+    ) -> Result<Self, TimeScaleError> {
+        let mut grid = Grid::build(p, inner, cfg, n, a, b)?;
+        let (geo, steer_needed) = steering_geometry(p, inner, cfg, n, &mut grid)?;
+        let base = constraints(p, cfg, n, &grid, open);
         let points = grid.points();
         let taus = &grid.taus;
         let mut fix = vec![1.0f64; points];
-        let mut inner = inner;
         let mut round = 0;
         loop {
             let x = topp(&base, &fix, taus);
@@ -789,46 +1310,40 @@ impl ScaledTrajectory {
                 let j = (0..points)
                     .min_by(|&a, &b| x[a].total_cmp(&x[b]))
                     .unwrap_or(0);
-                return Err(too_slow(p, &cfg, inner.as_ref(), &grid, n, j, est));
+                return Err(too_slow(p, cfg, inner, &grid, n, j, est));
             }
             let (ys, ka) = smooth_in_time(taus, &x, cfg.jerk_time);
             let pass = ys.iter().all(|&v| v == 1.0);
-            // The steering reference goes with every scaled trajectory, and with one that
-            // passes through unchanged where a wheel is held while the platform moves or the
-            // platform stops between two motions (the controllers' own rules near rest steer
-            // by the feedback's corrections).
-            let steer = steer || !pass || interior_stop(&grid.wmax);
-            let mut st = ScaledTrajectory {
-                inner,
-                platform: p.clone(),
-                n,
-                nominal,
-                executed: nominal,
+            // The steering reference goes with every scaled piece, and with one that passes
+            // through unchanged where a wheel is held while the platform moves or the
+            // platform comes near rest between two motions (the controllers' own rules near
+            // rest steer by the feedback's corrections).
+            let steer = steer_needed || !pass || interior_stop(&grid.wmax);
+            let mut piece = Piece {
+                tau0: a,
+                tau1: b,
+                t0: 0.0,
+                duration: b - a,
                 pass,
                 kt: Vec::new(),
                 ktau: Vec::new(),
                 kv: Vec::new(),
                 ka: Vec::new(),
                 reason: Vec::new(),
-                geo: sgeo.clone(),
+                geo: geo.clone(),
                 steer,
-                timing: Timing {
-                    nominal_duration_s: nominal,
-                    executed_duration_s: nominal,
-                    min_scale: 1.0,
-                    min_scale_at_s: 0.0,
-                    limiting: Limiting::None,
-                    wheel: 0,
-                    max_ratio: 0.0,
-                    steer_reference: steer,
-                },
+                optimal: est,
+                min: (f64::INFINITY, 0.0, Limiting::None, 0),
+                max_ratio: 0.0,
+                near: Vec::new(),
             };
             if !pass {
-                st.set_clock(taus, ys, ka);
+                piece.set_clock(taus, ys, ka);
             }
-            let violations = st.verify(&cfg, taus, &grid.caps);
+            let violations = piece.verify(p, inner, cfg, n, taus, &grid.caps, open);
             if violations.is_empty() || round == MAX_REPAIRS {
-                return Ok(st);
+                piece.near = piece.near_spans(taus, &near_stops(&grid));
+                return Ok(piece);
             }
             // Lower the bounds around each violation: over the path the smoothing window
             // mixes into it (twice the jerk time either side), and its own interval.
@@ -840,9 +1355,9 @@ impl ScaledTrajectory {
                     1.0 / ratio
                 } * 0.95;
                 let (t0, t1) = (t - 2.0 * cfg.jerk_time, t + 2.0 * cfg.jerk_time);
-                let (a, b) = (st.clock(t0).0, st.clock(t1).0);
-                let lo = taus.partition_point(|&x| x < a).saturating_sub(1);
-                let hi = taus.partition_point(|&x| x <= b).min(points - 1);
+                let (ta, tb) = (piece.clock(t0).0, piece.clock(t1).0);
+                let lo = taus.partition_point(|&x| x < ta).saturating_sub(1);
+                let hi = taus.partition_point(|&x| x <= tb).min(points - 1);
                 for v in &mut factor[lo..=hi] {
                     *v = v.min(f);
                 }
@@ -850,7 +1365,6 @@ impl ScaledTrajectory {
             for (v, f) in fix.iter_mut().zip(&factor) {
                 *v *= f;
             }
-            inner = st.inner;
             round += 1;
         }
     }
@@ -866,36 +1380,25 @@ impl ScaledTrajectory {
             }
             kt.push(t);
         }
-        self.executed = t;
+        self.duration = t;
         self.kt = kt;
         self.ktau = taus.to_vec();
         self.kv = ys;
         self.ka = ka;
     }
 
-    /// The trajectory being scaled.
-    pub fn inner(&self) -> &dyn Trajectory {
-        self.inner.as_ref()
-    }
-
-    /// True when ṡ ≡ 1: the samples are the inner trajectory's.
-    pub fn is_pass_through(&self) -> bool {
-        self.pass
-    }
-
-    /// The clock: (τ, ṡ, s̈, s⃛) at executed time `t` (before the start: the start; after
-    /// the end: the end, at rest).
-    pub fn clock(&self, t: f64) -> (f64, f64, f64, f64) {
+    /// The piece's clock: (τ, ṡ, s̈, s⃛) at time `t` from its start (clamped into it).
+    fn clock(&self, t: f64) -> (f64, f64, f64, f64) {
         let t = if t.is_finite() { t } else { 0.0 };
         if self.pass {
-            return (t.clamp(0.0, self.nominal), 1.0, 0.0, 0.0);
+            return ((self.tau0 + t).clamp(self.tau0, self.tau1), 1.0, 0.0, 0.0);
         }
-        let last = self.kt.len() - 1;
+        let last = self.kt.len().saturating_sub(1);
         if t <= 0.0 || last == 0 {
             return (self.ktau[0], self.kv[0], self.ka[0], 0.0);
         }
         if t >= self.kt[last] {
-            return (self.nominal, 0.0, 0.0, 0.0);
+            return (self.tau1, self.kv[last], self.ka[last], 0.0);
         }
         let k = (self.kt.partition_point(|&x| x <= t) - 1).min(last - 1);
         let c = quintic(
@@ -908,12 +1411,19 @@ impl ScaledTrajectory {
             self.kt[k + 1] - self.kt[k],
         );
         let (tau, v, a, j) = eval_quintic(&c, t - self.kt[k]);
-        (tau.clamp(0.0, self.nominal), v, a, j)
+        (tau.clamp(self.tau0, self.tau1), v, a, j)
     }
 
     /// Wheel `i`'s steering geometry at path time `tau`, with the inner sample `r` there:
     /// (φ, dφ/dτ, d²φ/dτ²).
-    fn steer_at(&self, i: usize, tau: f64, r: &ReferenceSample) -> (f64, f64, f64) {
+    fn steer_at(
+        &self,
+        p: &Platform,
+        n: usize,
+        i: usize,
+        tau: f64,
+        r: &ReferenceSample,
+    ) -> (f64, f64, f64) {
         let g = &self.geo;
         if let Some(b) = self.blend(i, tau) {
             let (phi, d1, d2, _) = eval_quintic(&b.coef, tau - b.a);
@@ -921,13 +1431,13 @@ impl ScaledTrajectory {
         }
         let m = g.taus.len();
         let grid = if m < 2 {
-            g.angle[i]
+            g.angle.get(i).copied().unwrap_or(0.0)
         } else {
             let j = g.taus.partition_point(|&x| x <= tau).clamp(1, m - 1) - 1;
             let f = ((tau - g.taus[j]) / (g.taus[j + 1] - g.taus[j])).clamp(0.0, 1.0);
-            g.angle[j * self.n + i] * (1.0 - f) + g.angle[(j + 1) * self.n + i] * f
+            g.angle[j * n + i] * (1.0 - f) + g.angle[(j + 1) * n + i] * f
         };
-        let [u, du, ddu] = contact_kinematics(&self.platform, i, r);
+        let [u, du, ddu] = contact_kinematics(p, i, r);
         if u[0] == 0.0 && u[1] == 0.0 {
             return (grid, 0.0, 0.0);
         }
@@ -964,34 +1474,39 @@ impl ScaledTrajectory {
         direction_rates(w, dw, ddw)
     }
 
-    /// The scaled sample at `t` and the inner sample at its path time, with the clock.
-    fn sample_full(&self, t: f64) -> (ReferenceSample, ReferenceSample, (f64, f64, f64, f64)) {
-        let clk = self.clock(t);
-        let (tau, v, a, j) = clk;
-        let r = self.inner.sample(if self.pass { t } else { tau });
-        let mut s = r;
-        if !self.pass {
-            s.t = t;
-            for c in 0..3 + self.n {
-                s.dz[c] = r.dz[c] * v;
-                s.ddz[c] = r.ddz[c] * v * v + r.dz[c] * a;
-                s.dddz[c] = r.dddz[c] * v * v * v + 3.0 * r.ddz[c] * v * a + r.dz[c] * j;
-            }
-        }
-        if self.steer {
-            let mut sr = SteerReference {
-                valid: true,
-                ..SteerReference::default()
-            };
-            for i in 0..self.n {
-                let (phi, d1, d2) = self.steer_at(i, tau, &r);
-                sr.angle[i] = phi;
-                sr.rate[i] = d1 * v;
-                sr.accel[i] = d2 * v * v + d1 * a;
-            }
-            s.steer = sr;
-        }
-        (s, r, clk)
+    /// Wheel `i`'s steering angle at the piece's first and last grid point.
+    fn start_angle(&self, i: usize) -> f64 {
+        self.geo.angle.get(i).copied().unwrap_or(0.0)
+    }
+    fn end_angle(&self, n: usize, i: usize) -> f64 {
+        let m = self.geo.taus.len();
+        self.geo
+            .angle
+            .get((m.max(1) - 1) * n + i)
+            .copied()
+            .unwrap_or(0.0)
+    }
+
+    /// Wheel `i`'s steering state (angle, rate, acceleration in executed time) where the
+    /// piece starts and ends.
+    fn steer_start(&self, p: &Platform, inner: &dyn Trajectory, n: usize, i: usize) -> SteerState {
+        self.steer_state(p, inner, n, i, 0.0)
+    }
+    fn steer_end(&self, p: &Platform, inner: &dyn Trajectory, n: usize, i: usize) -> SteerState {
+        self.steer_state(p, inner, n, i, self.duration)
+    }
+    fn steer_state(
+        &self,
+        p: &Platform,
+        inner: &dyn Trajectory,
+        n: usize,
+        i: usize,
+        t: f64,
+    ) -> SteerState {
+        let (tau, v, a, _) = self.clock(t);
+        let r = inner.sample(tau);
+        let (phi, d1, d2) = self.steer_at(p, n, i, tau, &r);
+        (phi, d1 * v, d2 * v * v + d1 * a)
     }
 
     /// Largest demand over its share at one instant, from the inner sample `r` at the
@@ -1000,16 +1515,17 @@ impl ScaledTrajectory {
     /// (ratio, limit, wheel, speed-type).
     fn ratio(
         &self,
+        p: &Platform,
+        n: usize,
         cfg: &TimeScaleConfig,
         r: &ReferenceSample,
         clk: (f64, f64, f64, f64),
     ) -> (f64, Limiting, usize, bool) {
-        let p = &self.platform;
         let l = &p.limits;
         let (fv, fa) = (cfg.speed_fraction, cfg.accel_fraction);
         let (tau, v, a, _) = clk;
         let mut worst = (0.0f64, Limiting::None, 0usize, true);
-        for i in 0..self.n {
+        for i in 0..n {
             let [w, dw, ddw] = contact_kinematics(p, i, r);
             let sp = w[0].hypot(w[1]);
             let speed_d = if sp > 0.0 {
@@ -1059,38 +1575,41 @@ impl ScaledTrajectory {
         worst
     }
 
-    /// Executed times of the grid points.
-    fn grid_times(&self, taus: &[f64]) -> Vec<f64> {
-        if self.pass {
-            taus.to_vec()
-        } else {
-            self.kt.clone()
-        }
-    }
-
-    /// Checks the demands at the grid points and midway between them: returns the largest
-    /// demand over its share and the violations (executed time, ratio, speed-type) beyond the
-    /// tolerance, and records the timing and the binding limit at every grid point.
+    /// Checks the demands at the grid points and between them: returns the violations
+    /// (time from the piece's start, ratio, speed-type) beyond the tolerance, and records the
+    /// largest demand, the slowest point and the binding limit at every grid point.
+    #[allow(clippy::too_many_arguments)]
     fn verify(
         &mut self,
+        p: &Platform,
+        inner: &dyn Trajectory,
         cfg: &TimeScaleConfig,
+        n: usize,
         taus: &[f64],
         caps: &[f64],
+        open: (bool, bool),
     ) -> Vec<(f64, f64, bool)> {
-        let kt = self.grid_times(taus);
+        let kt: Vec<f64> = if self.pass {
+            taus.iter().map(|t| t - self.tau0).collect()
+        } else {
+            self.kt.clone()
+        };
         let mut worst = 0.0f64;
         let mut out = Vec::new();
         let mut reason = Vec::with_capacity(kt.len());
         let mut min = (f64::INFINITY, 0.0, Limiting::None, 0usize);
-        let r0 = start_steer_rate(&self.platform, cfg);
-        let ends = (kt.first().copied(), kt.last().copied());
+        let r0 = start_steer_rate(p, cfg);
+        let ends = (
+            kt.first().copied().filter(|_| open.0),
+            kt.last().copied().filter(|_| open.1),
+        );
         let mut check = |t: f64| {
             let clk = self.clock(t);
-            let r = self.inner.sample(if self.pass { t } else { clk.0 });
-            let mut q = self.ratio(cfg, &r, clk);
+            let r = inner.sample(clk.0);
+            let mut q = self.ratio(p, n, cfg, &r, clk);
             if Some(t) == ends.0 || Some(t) == ends.1 {
-                for i in 0..self.n {
-                    let [w, dw, ddw] = contact_kinematics(&self.platform, i, &r);
+                for i in 0..n {
+                    let [w, dw, ddw] = contact_kinematics(p, i, &r);
                     let rate = self.steer_rates(i, clk.0, w, dw, ddw).0 * clk.1;
                     let e = rate.abs() / r0;
                     if e > q.0 {
@@ -1120,21 +1639,63 @@ impl ScaledTrajectory {
             }
         }
         self.reason = reason;
-        self.timing = Timing {
-            nominal_duration_s: self.nominal,
-            executed_duration_s: self.executed,
-            min_scale: if min.0.is_finite() { min.0 } else { 1.0 },
-            min_scale_at_s: min.1,
-            limiting: if min.0 < 1.0 - 1e-9 {
-                min.2
-            } else {
-                Limiting::None
-            },
-            wheel: min.3,
-            max_ratio: worst,
-            steer_reference: self.steer,
-        };
+        self.min = min;
+        self.max_ratio = worst;
         out
+    }
+
+    /// The executed-time spans (from the piece's start) of the runs of near-stop grid points.
+    fn near_spans(&self, taus: &[f64], near: &[bool]) -> Vec<(f64, f64)> {
+        let time = |j: usize| {
+            if self.pass {
+                taus[j] - self.tau0
+            } else {
+                self.kt.get(j).copied().unwrap_or(self.duration)
+            }
+        };
+        let mut out = Vec::new();
+        let mut j = 0;
+        while j < near.len() {
+            if !near[j] {
+                j += 1;
+                continue;
+            }
+            let start = j;
+            while j < near.len() && near[j] {
+                j += 1;
+            }
+            out.push((time(start), time(j - 1)));
+        }
+        out
+    }
+
+    /// The binding limit at path time `tau` and whether the clock runs below its cap there.
+    fn reason_at(&self, tau: f64) -> (Limiting, u8, bool) {
+        let taus = &self.geo.taus;
+        let m = self.reason.len().min(taus.len());
+        if m == 0 {
+            (Limiting::None, 0, false)
+        } else {
+            let k = taus.partition_point(|&x| x <= tau).clamp(1, m) - 1;
+            self.reason[k]
+        }
+    }
+}
+
+/// The refusal for a timing that would last too long ([`too_slow`]) at the slowest point of
+/// `piece`.
+fn piece_too_slow(
+    p: &Platform,
+    cfg: &TimeScaleConfig,
+    inner: &dyn Trajectory,
+    n: usize,
+    piece: &Piece,
+    duration: f64,
+) -> TimeScaleError {
+    let tau = piece.clock(piece.min.1).0;
+    match Grid::build(p, inner, cfg, n, tau, tau) {
+        Ok(g) => too_slow(p, cfg, inner, &g, n, 0, duration),
+        Err(e) => e,
     }
 }
 
@@ -1206,10 +1767,7 @@ fn topp(pts: &[Point], fix: &[f64], taus: &[f64]) -> Vec<f64> {
         let mut kj = xbar(j);
         for c in &pts[j].acc {
             let ((pl, ql), _) = c.bounds();
-            let den = 1.0 + 2.0 * h * ql;
-            if den > 0.0 {
-                kj = kj.min((k[j + 1] - 2.0 * h * pl) / den);
-            }
+            kj = kj.min(step_back(h, pl, ql, k[j + 1]));
         }
         k[j] = if kj.is_nan() {
             X_FLOOR
@@ -1220,7 +1778,14 @@ fn topp(pts: &[Point], fix: &[f64], taus: &[f64]) -> Vec<f64> {
     x[0] = k[0];
     for j in 0..points - 1 {
         let h = taus[j + 1] - taus[j];
-        let next = x[j] + 2.0 * h * pts[j].upper(x[j]);
+        let next = pts[j]
+            .acc
+            .iter()
+            .map(|c| {
+                let (_, (r, s)) = c.bounds();
+                step(h, r, s, x[j])
+            })
+            .fold(f64::INFINITY, f64::min);
         x[j + 1] = if next.is_nan() {
             k[j + 1]
         } else {
@@ -1228,6 +1793,33 @@ fn topp(pts: &[Point], fix: &[f64], taus: &[f64]) -> Vec<f64> {
         };
     }
     x
+}
+
+/// x at the end of an interval of length `h` in τ from `x` at its start, with s̈ on the bound
+/// r + s x of one constraint (dx/dτ = 2 s̈). Where the bound falls with x (s < 0: a wheel whose
+/// speed grows along the path, so its acceleration |w'| ṡ² grows with x) the step is
+/// semi-implicit — the bound taken at the interval's end, x' = (x + 2hr)/(1 − 2hs) — because the
+/// explicit step x + 2h(r + s x) overshoots the bound's equilibrium x = −r/s when 2h|s| > 1
+/// (near rest, where |w| is small, |s| = |w'|/|w| is large: the explicit step then stopped the
+/// clock at a grid point and the run never ended). Otherwise the explicit step.
+fn step(h: f64, r: f64, s: f64, x: f64) -> f64 {
+    if s < 0.0 {
+        (x + 2.0 * h * r) / (1.0 - 2.0 * h * s)
+    } else {
+        x + 2.0 * h * (r + s * x)
+    }
+}
+
+/// The largest x at an interval's start from which the lower bound p + q x of one constraint
+/// (decelerating as hard as it allows, the step of [`step`]) reaches at most `next` at its
+/// end.
+fn step_back(h: f64, p: f64, q: f64, next: f64) -> f64 {
+    if q < 0.0 {
+        next * (1.0 - 2.0 * h * q) - 2.0 * h * p
+    } else {
+        // x (1 + 2hq) + 2hp ≤ next, 1 + 2hq > 0.
+        (next - 2.0 * h * p) / (1.0 + 2.0 * h * q)
+    }
 }
 
 /// A function sampled every `h` from 0, linear between the samples and held beyond the ends.
@@ -1428,6 +2020,7 @@ fn steering_geometry(
         blends: vec![Vec::new(); n],
     };
     let mut steer_needed = false;
+    let near = near_stops(g);
     for i in 0..n {
         // Points held only because the wheel never reaches HOLD_SPEED there (the controllers
         // hold it by themselves; they need no steering reference for it).
@@ -1440,7 +2033,10 @@ fn steering_geometry(
         for j in 0..points {
             let wmax = g.wmax[j];
             let q = &mut g.geo[j * n + i];
-            if wmax <= REST_W || q.speed <= 0.0 {
+            // The whole platform slower than NEAR_REST even at the clock's cap: a near stop,
+            // where no wheel's direction of travel means anything (module docs, "Stops and
+            // dwells").
+            if wmax <= REST_W || q.speed <= 0.0 || near[j] {
                 q.defined = false;
                 continue;
             }
@@ -1530,7 +2126,7 @@ fn steering_geometry(
                 sg.angle[j * n + i] = angle;
             }
             sg.blends[i].push(Blend {
-                a: 0.0,
+                a: taus[0],
                 b: taus[points - 1],
                 coef: [angle, 0.0, 0.0, 0.0, 0.0, 0.0],
             });
@@ -1557,10 +2153,23 @@ fn steering_geometry(
             // from the nearest steered point, so the steering rate has no step. A wheel held
             // while the platform moves holds its angle.
             let at_rest = (start..end).all(|k| g.wmax[k] <= REST_W);
+            let near_rest = !at_rest && (start..end).all(|k| near[k]);
             let blend = if start == 0 {
                 let q = g.geo[first * n + i];
-                let h = taus[first];
-                let coef = if at_rest {
+                let h = taus[first] - taus[0];
+                let coef = if near_rest {
+                    // From rest, the rate building up over the stretch to the first steered
+                    // point's.
+                    quintic(
+                        q.angle - 0.5 * q.rate * h,
+                        0.0,
+                        0.0,
+                        q.angle,
+                        q.rate,
+                        q.accel,
+                        h,
+                    )
+                } else if at_rest {
                     [
                         q.angle - q.rate * h + 0.5 * q.accel * h * h,
                         q.rate - q.accel * h,
@@ -1572,10 +2181,26 @@ fn steering_geometry(
                 } else {
                     [q.angle, 0.0, 0.0, 0.0, 0.0, 0.0]
                 };
-                Blend { a: 0.0, b: h, coef }
+                Blend {
+                    a: taus[0],
+                    b: taus[first],
+                    coef,
+                }
             } else if end == points {
                 let q = g.geo[(start - 1) * n + i];
-                let coef = if at_rest {
+                let h = taus[points - 1] - taus[start - 1];
+                let coef = if near_rest {
+                    // To rest over the stretch.
+                    quintic(
+                        q.angle,
+                        q.rate,
+                        q.accel,
+                        q.angle + 0.5 * q.rate * h,
+                        0.0,
+                        0.0,
+                        h,
+                    )
+                } else if at_rest {
                     [q.angle, q.rate, 0.5 * q.accel, 0.0, 0.0, 0.0]
                 } else {
                     [q.angle, 0.0, 0.0, 0.0, 0.0, 0.0]
@@ -1613,6 +2238,36 @@ fn steering_geometry(
         }
     }
     Ok((sg, steer_needed))
+}
+
+/// The grid points of the path's near stops (module docs, "Stops and dwells"): maximal runs
+/// of points where the fastest wheel is slower than [`NEAR_REST`] at the clock's cap, along
+/// which the platform travels less than [`NEAR_REST_TRAVEL`] (a deliberately slow motion
+/// over a longer distance is steered by its directions as any other).
+fn near_stops(g: &Grid) -> Vec<bool> {
+    let points = g.points();
+    let mut near = vec![false; points];
+    let mut j = 0;
+    while j < points {
+        if g.wmax[j] * g.caps[j] >= NEAR_REST {
+            j += 1;
+            continue;
+        }
+        let start = j;
+        let mut travel = 0.0;
+        while j < points && g.wmax[j] * g.caps[j] < NEAR_REST {
+            if j > start {
+                travel += 0.5 * (g.wmax[j] + g.wmax[j - 1]) * (g.taus[j] - g.taus[j - 1]);
+            }
+            j += 1;
+        }
+        if travel <= NEAR_REST_TRAVEL {
+            for v in &mut near[start..j] {
+                *v = true;
+            }
+        }
+    }
+    near
 }
 
 /// Whether wheel `i`'s direction of travel jumps between path times `a` and `b`: bisects
@@ -1666,15 +2321,13 @@ impl Trajectory for ScaledTrajectory {
     }
     fn time_scale(&self, t: f64) -> Option<ScaleStatus> {
         let (tau, v, _, _) = self.clock(t);
-        let taus = &self.geo.taus;
-        let m = self.reason.len().min(taus.len());
-        let (what, wheel, slowed) = if m == 0 {
-            (Limiting::None, 0, false)
-        } else {
-            let k = taus.partition_point(|&x| x <= tau).clamp(1, m) - 1;
-            self.reason[k]
-        };
         let running = t < self.executed;
+        let (what, wheel, slowed) = match self.locate(t) {
+            _ if self.pass => self.pieces[0].reason_at(tau),
+            (Span::Piece(k), _) => self.pieces[k].reason_at(tau),
+            // A dwell: the clock holds while the wheels re-steer.
+            (Span::Dwell(_), _) => (Limiting::Aligning, 0, true),
+        };
         Some(ScaleStatus {
             scale: if running { v } else { 1.0 },
             limiting: if slowed && running {
@@ -1860,7 +2513,27 @@ mod tests {
                 );
                 max_jump_a = max_jump_a.max((r.ddz[c_] - prev.ddz[c_]).abs());
             }
-            // ṡ and s̈ continuous, s⃛ bounded.
+            // ṡ and s̈ continuous, s⃛ bounded — except where a dwell starts or ends: the path
+            // rests there (ż* = z̈* = 0, checked below), so the clock may start and stop
+            // at once while z stays C².
+            let at_dwell = s
+                .dwells()
+                .iter()
+                .any(|&(a, b)| (tt - a).abs() <= h || (tt - b).abs() <= h);
+            if at_dwell {
+                for &(a, b) in s.dwells() {
+                    for e in [a, b] {
+                        let r = s.inner.sample(s.clock(e).0);
+                        assert!(
+                            r.dz.iter().chain(r.ddz.iter()).all(|v| v.abs() < 1e-9),
+                            "the path rests where a dwell starts or ends ({e})"
+                        );
+                    }
+                }
+                prev = s.sample(tt);
+                prev_clock = c;
+                continue;
+            }
             assert!((c.1 - prev_clock.1).abs() < 1e-3, "ṡ jumps at {tt}");
             assert!(
                 (c.2 - prev_clock.2).abs() < 2e-2,

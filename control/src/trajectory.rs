@@ -74,6 +74,14 @@ pub trait Trajectory: Send + Sync {
     fn timing(&self) -> Option<crate::timescale::Timing> {
         None
     }
+    /// The path's exact stops: intervals of its time (s; equal ends for a stop at an
+    /// instant) over which every component is at rest, with zero velocity and acceleration
+    /// at their ends. The time scaling holds its clock there while the wheels re-steer
+    /// ([`crate::timescale`], "Stops and dwells"). Default: none known (the time scaling
+    /// still finds a start and an end at rest by itself).
+    fn stops(&self) -> Vec<(f64, f64)> {
+        Vec::new()
+    }
 }
 
 /// Errors from building or loading a trajectory.
@@ -449,6 +457,15 @@ impl From<Waypoint> for WaypointSpec {
 /// three-point derivative (h_k m_{k−1} + h_{k−1} m_k)/(h_{k−1} + h_k) of the chord slopes
 /// m. Knot accelerations: 0 at the ends, 2 (m_k − m_{k−1})/(h_{k−1} + h_k) inside.
 ///
+/// **Stops.** Where every component's knot velocity is 0 (every component changes direction
+/// or holds there: a corner, a reversal, a waypoint repeated to stop), the platform stops
+/// exactly: the knot accelerations are 0 too, so the segment between two equal waypoints
+/// stands still (a *stand*) instead of swinging out and back, and the direction in which
+/// each wheel leaves and arrives is that of the segment's first non-zero derivative (its
+/// jerk). [`Trajectory::stops`] lists them; the time scaling re-steers the wheels there
+/// while its clock holds (a dwell), so a corner at a stop costs the time the steering
+/// needs, not a crawl.
+///
 /// **Legs stay in their range.** A leg segment that these knot values would take beyond
 /// the leg's range (a waypoint at or near a limit reached fast) gets zero velocity and
 /// acceleration for that leg at both its knots, repeated until no segment leaves the range:
@@ -698,6 +715,12 @@ impl QuinticSpline {
                 };
                 acc[k][c] = 2.0 * (m1 - m0) / (h0 + h1);
             }
+            // A full stop (type docs, "Stops").
+            if (0..3 + n).all(|c| vel[k][c] == 0.0) {
+                for c in 0..3 + n {
+                    acc[k][c] = 0.0;
+                }
+            }
         }
         let mut leg_range = [(0.0, 0.0); MAX_WHEELS];
         for (i, wc) in p.wheels.iter().enumerate().take(n) {
@@ -741,6 +764,14 @@ impl QuinticSpline {
                 }
                 if !changed {
                     break;
+                }
+            }
+        }
+        // Knots the leg pass left with every velocity 0 are full stops too.
+        for k in 1..m - 1 {
+            if (0..3 + n).all(|c| vel[k][c] == 0.0) {
+                for c in 0..3 + n {
+                    acc[k][c] = 0.0;
                 }
             }
         }
@@ -889,6 +920,33 @@ impl Trajectory for QuinticSpline {
     fn timed_at(&self, t: f64) -> bool {
         let t = if t.is_finite() { t } else { 0.0 };
         self.timed[self.segment_of(t)]
+    }
+    fn stops(&self) -> Vec<(f64, f64)> {
+        // Knots where every component rests (velocity and acceleration 0), merged with the
+        // stands between two of them whose waypoints are equal.
+        let rests = |k: usize| {
+            let seg = if k + 1 < self.times.len() { k } else { k - 1 };
+            let tau = self.times[k] - self.times[seg];
+            (0..3 + self.n).all(|c| {
+                let (_, v, a, _) = eval_quintic(&self.coeffs[seg][c], tau);
+                v == 0.0 && a == 0.0
+            })
+        };
+        let mut out: Vec<(f64, f64)> = Vec::new();
+        for k in 0..self.times.len() {
+            if !rests(k) {
+                continue;
+            }
+            let t = self.times[k];
+            let stand = k > 0
+                && out.last().is_some_and(|l| l.1 == self.times[k - 1])
+                && (0..3 + self.n).all(|c| self.coeffs[k - 1][c][1..].iter().all(|&x| x == 0.0));
+            match out.last_mut() {
+                Some(last) if stand => last.1 = t,
+                _ => out.push((t, t)),
+            }
+        }
+        out
     }
     fn waypoint_near(&self, t: f64) -> Option<usize> {
         let t = if t.is_finite() { t } else { 0.0 };

@@ -143,6 +143,9 @@ enum Command {
     /// Print every ROS 2 message definition rollbase uses, as JSON {name: full definition}.
     #[command(hide = true)]
     Ros2MsgDefinitions,
+    /// Print the robot model (URDF) generated from the platform file: what `--ros2` publishes
+    /// on robot_description (for RViz, Foxglove, robot_state_publisher).
+    Urdf(UrdfArgs),
     /// Print the protocol as a DBC file (load it in cantools, SavvyCAN, …).
     Dbc,
     /// Print docs/protocol.md, generated from the protocol table.
@@ -207,6 +210,16 @@ pub(crate) struct CommonRun {
 }
 
 #[derive(Args, Debug)]
+struct UrdfArgs {
+    /// Platform file (TOML); default: the built-in Justin-like platform.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Joint names, 3 per wheel (steer,drive,leg), as given to `--ros2-joint-names`.
+    #[arg(long = "ros2-joint-names", value_name = "NAMES", value_parser = rollbase::ros2::parse_joint_names)]
+    joint_names: Option<rollbase::ros2::JointNames>,
+}
+
+#[derive(Args, Debug)]
 struct PlotArgs {
     /// MCAP recording.
     file: PathBuf,
@@ -261,6 +274,14 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
             if !rep.labelled {
                 errln!("note: no TTF font found, plots have no text; install fonts-dejavu-core or set ROLLBASE_FONT");
             }
+            Ok(0)
+        }
+        Command::Urdf(a) => {
+            let p = load_platform(a.config.as_deref())?;
+            let names = a.joint_names.unwrap_or_default();
+            let u = rollbase::ros2::urdf::generate(&p, &names)
+                .map_err(|e| CliError::Usage(format!("--ros2-joint-names: {e}")))?;
+            out!("{u}");
             Ok(0)
         }
         Command::Dbc => {

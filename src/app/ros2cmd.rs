@@ -202,8 +202,16 @@ pub(crate) fn selftest(a: SelftestArgs) -> Result<i32, CliError> {
             a.duration
         )));
     }
-    let opts = a.ros2.to_options();
+    let mut opts = a.ros2.to_options();
     opts.validate(Some(n))?;
+    // The robot model of the default platform when the synthetic one has as many wheels.
+    let platform = rollbase_control::Platform::default();
+    if platform.wheels.len() == n {
+        opts.robot_description = Some(
+            rollbase::ros2::urdf::generate(&platform, &opts.joint_names)
+                .map_err(|e| CliError::Usage(format!("--ros2-joint-names: {e}")))?,
+        );
+    }
     let mut rec = match &a.record {
         Some(p) => Some(McapRecorder::create_with(
             p,
@@ -292,6 +300,11 @@ pub(crate) fn selftest(a: SelftestArgs) -> Result<i32, CliError> {
         "published": st.published.load(Ordering::Relaxed),
         "publish_errors": st.publish_errors.load(Ordering::Relaxed),
         "services_answered": st.services_answered.load(Ordering::Relaxed),
+        "services_cyclone": st.services_cyclone.load(Ordering::Relaxed),
+        "services_enhanced": st.services_enhanced.load(Ordering::Relaxed),
+        "qos_incompatible": st.qos_incompatible.load(Ordering::Relaxed),
+        "undecodable": st.undecodable_by_endpoint(),
+        "discovery_layout": st.announced_layout().map(|l| l.bytes()),
         "states_dropped_before_the_node": dropped_states,
         "cycles": k,
     });

@@ -595,11 +595,16 @@ fn serve(
     // The ROS 2 node: a second command source on the same port, and a state consumer. It
     // starts before the cycle so that a DDS failure refuses the run before the platform moves.
     let node = match ros2 {
-        Some(opts) => {
+        Some(mut opts) => {
+            // The robot model on robot_description, with the joint names of joint_states.
+            opts.robot_description = Some(
+                rollbase::ros2::urdf::generate(&platform, &opts.joint_names)
+                    .map_err(|e| CliError::Usage(format!("--ros2-joint-names: {e}")))?,
+            );
             let (node_tx, node_rx) = std::sync::mpsc::sync_channel::<BaseState>(NODE_STATE_QUEUE);
             let handle = spawn_node(opts.clone(), cmd_tx.clone(), node_rx, Instant::now())?;
             tracing::info!(
-                "ROS 2 node {} on DDS domain {}: commands on {} and {}, state on {}, {}, {}, {}{}; services {}/stop and {}/rearm",
+                "ROS 2 node {} on DDS domain {}: commands on {} and {}, state on {}, {}, {}, {}{}, robot_description; services {}/stop and {}/rearm",
                 opts.node_fqn(),
                 handle.domain_id(),
                 opts.topic(&opts.cmd_vel_topic),
@@ -684,13 +689,19 @@ fn serve(
     if let Some(n) = node {
         let st = n.stats();
         tracing::info!(
-            "ROS 2 node: {} commands passed on ({} dropped, {} refused), {} messages published ({} failed), {} service calls",
+            "ROS 2 node: {} commands passed on ({} dropped, {} refused), {} messages published ({} failed), {} service calls ({} cyclone, {} enhanced mapping), undecodable samples {:?}, {} incompatible-QoS events, announced with {}",
             st.commands_sent.load(Ordering::Relaxed),
             st.commands_dropped.load(Ordering::Relaxed),
             st.commands_refused.load(Ordering::Relaxed),
             st.published.load(Ordering::Relaxed),
             st.publish_errors.load(Ordering::Relaxed),
             st.services_answered.load(Ordering::Relaxed),
+            st.services_cyclone.load(Ordering::Relaxed),
+            st.services_enhanced.load(Ordering::Relaxed),
+            st.undecodable_by_endpoint(),
+            st.qos_incompatible.load(Ordering::Relaxed),
+            st.announced_layout()
+                .map_or("no discovery layout (no ROS 2 peer seen)".to_string(), |l| format!("the {l}")),
         );
         n.shutdown();
     }

@@ -1,18 +1,29 @@
-//! rollbase as a ROS 2 participant, with no ROS installation: `ros2-client` (pure Rust, on
-//! the `rustdds` DDS implementation) speaks DDS/RTPS with the standard ROS 2 type names and CDR
-//! encoding, so rclcpp/rclpy nodes on any DDS-based rmw (Cyclone DDS, Fast DDS) see an
-//! ordinary node.
+//! rollbase as a ROS 2 participant, with no ROS installation: `rustdds` (a pure-Rust DDS/RTPS
+//! implementation) with the standard ROS 2 topic and type names, QoS and CDR encoding, so
+//! rclcpp/rclpy nodes on any DDS-based rmw (Cyclone DDS, Fast DDS) see an ordinary node.
 //!
 //! - [`msg`]: the message types (serde in `.msg` order, definitions, CDR codec);
 //! - [`convert`]: state port → messages, messages → command port (pure; shared with the
 //!   recorder);
+//! - [`dds`]: ROS 2 names, types and QoS on rustdds;
+//! - [`service`]: service requests in either rmw's request/reply mapping (pure);
+//! - [`discovery`]: `ros_discovery_info` in Humble's and Jazzy's layouts (pure);
+//! - [`urdf`]: the robot model from the platform file (pure);
+//! - [`params`]: the parameter services every ROS 2 node has (none to set; pure answers);
 //! - [`node`]: the node on its own threads, [`spawn_node`].
 //!
 //! See `docs/ros2.md` for topics, frames, services, options, QoS and Nav2 settings.
 
 pub mod convert;
+pub mod dds;
+pub mod discovery;
 pub mod msg;
 pub mod node;
+pub mod params;
+pub mod service;
+pub mod urdf;
+
+pub use discovery::{DistroChoice, GidLayout};
 
 pub use convert::{Frames, JointNames};
 pub use node::{spawn_node, NodeHandle, NodeStats};
@@ -51,7 +62,7 @@ pub enum Ros2Error {
         what: &'static str,
         /// Its name.
         name: String,
-        /// What ros2-client reported.
+        /// What rustdds reported.
         message: String,
     },
     /// A node thread could not be started.
@@ -65,15 +76,17 @@ pub enum Ros2Error {
 }
 
 /// How service requests and replies are mapped onto DDS topics. ROS 2's rmw layers differ:
-/// rmw_cyclonedds puts a request header (client GUID half, sequence number) in the payload,
+/// rmw_cyclonedds puts a request header (client id, sequence number) in the payload,
 /// rmw_fastrtps uses the RTPS related-sample-identity ("enhanced" mapping of the OMG
-/// RPC-over-DDS specification).
+/// RPC-over-DDS specification). See [`service`].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum ServiceMapping {
-    /// rmw_cyclonedds_cpp (the mapping the interop tests check, with Eclipse Cyclone DDS).
+    /// Per request, the caller's (the default): one node serves both kinds of caller.
     #[default]
+    Auto,
+    /// Only rmw_cyclonedds_cpp callers.
     Cyclone,
-    /// rmw_fastrtps_cpp (Fast DDS, ROS 2's default rmw); not tested here.
+    /// Only rmw_fastrtps_cpp (and rmw_connextdds) callers.
     Enhanced,
 }
 
@@ -81,10 +94,11 @@ impl std::str::FromStr for ServiceMapping {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
         match s {
+            "auto" => Ok(Self::Auto),
             "cyclone" | "cyclonedds" => Ok(Self::Cyclone),
             "enhanced" | "fastdds" | "fastrtps" => Ok(Self::Enhanced),
             _ => Err(format!(
-                "{s:?}: use cyclone (rmw_cyclonedds_cpp) or enhanced (rmw_fastrtps_cpp)"
+                "{s:?}: use auto (each caller's, the default), cyclone (rmw_cyclonedds_cpp only) or enhanced (rmw_fastrtps_cpp only)"
             )),
         }
     }
@@ -125,8 +139,13 @@ pub struct Ros2Options {
     /// a change of the supervisor state, fault reason or limiting cause is published at once,
     /// at most once per 0.1 s).
     pub diagnostics_rate_hz: f64,
-    /// Service mapping of `~/stop` and `~/rearm`.
+    /// Service mapping of `~/stop` and `~/rearm` (default: each caller's).
     pub service_mapping: ServiceMapping,
+    /// Which release's `ros_discovery_info` layout the node announces itself in (default:
+    /// `ROS_DISTRO`, else the peers').
+    pub distro: DistroChoice,
+    /// The URDF published on `robot_description` (transient local), if any.
+    pub robot_description: Option<String>,
     /// Restrict DDS discovery announcements and multicast to the interfaces with these
     /// addresses (empty: all interfaces). Not a firewall: sockets still bind the wildcard.
     pub only_addresses: Vec<IpAddr>,
@@ -147,7 +166,9 @@ impl Default for Ros2Options {
             odom_rate_hz: 50.0,
             joint_states_rate_hz: 50.0,
             diagnostics_rate_hz: 1.0,
-            service_mapping: ServiceMapping::Cyclone,
+            service_mapping: ServiceMapping::Auto,
+            distro: DistroChoice::Auto,
+            robot_description: None,
             only_addresses: Vec::new(),
         }
     }
@@ -306,9 +327,14 @@ pub struct Ros2Args {
     /// Rate of diagnostics in Hz (default 1).
     #[arg(long = "ros2-diagnostics-rate", value_name = "HZ", value_parser = parse_rate)]
     pub diagnostics_rate: Option<f64>,
-    /// Service mapping: cyclone (rmw_cyclonedds_cpp) or enhanced (rmw_fastrtps_cpp).
+    /// Service mapping: auto (each caller's, default), cyclone (rmw_cyclonedds_cpp only) or
+    /// enhanced (rmw_fastrtps_cpp only).
     #[arg(long = "ros2-service-mapping", value_name = "MAPPING")]
     pub service_mapping: Option<ServiceMapping>,
+    /// ROS 2 release whose discovery layout to announce the node in: humble, iron, jazzy,
+    /// kilted, rolling, or auto (default: $ROS_DISTRO, else the first ROS 2 peer's).
+    #[arg(long = "ros2-distro", value_name = "RELEASE")]
+    pub distro: Option<DistroChoice>,
     /// Announce DDS only on the interface with this address (repeatable; default all).
     #[arg(long = "ros2-address", value_name = "IP")]
     pub only_addresses: Vec<IpAddr>,
@@ -335,6 +361,8 @@ impl Ros2Args {
             joint_states_rate_hz: self.joint_states_rate.unwrap_or(d.joint_states_rate_hz),
             diagnostics_rate_hz: self.diagnostics_rate.unwrap_or(d.diagnostics_rate_hz),
             service_mapping: self.service_mapping.unwrap_or(d.service_mapping),
+            distro: self.distro.unwrap_or(d.distro),
+            robot_description: None,
             only_addresses: self.only_addresses.clone(),
         }
     }
@@ -461,6 +489,8 @@ mod tests {
             (50.0, 50.0, 1.0)
         );
         assert!(o.publish_tf && !o.cmd_vel_stamped);
+        assert_eq!(o.service_mapping, ServiceMapping::Auto);
+        assert_eq!(o.distro, DistroChoice::Auto);
         o.validate(Some(4)).unwrap();
         assert_eq!(Cli::parse_from(["x"]).ros2.to_options(), o);
         assert_eq!(o.topic("odom"), "/odom");
@@ -492,6 +522,8 @@ mod tests {
             "0.5",
             "--ros2-service-mapping",
             "enhanced",
+            "--ros2-distro",
+            "humble",
             "--ros2-address",
             "127.0.0.1",
         ]);
@@ -504,6 +536,7 @@ mod tests {
         assert_eq!(o.odom_rate_hz, 100.0);
         assert_eq!(o.diagnostics_rate_hz, 0.5);
         assert_eq!(o.service_mapping, ServiceMapping::Enhanced);
+        assert_eq!(o.distro, DistroChoice::Fixed(GidLayout::Gid24));
         assert_eq!(
             o.only_addresses,
             vec!["127.0.0.1".parse::<IpAddr>().unwrap()]
@@ -527,6 +560,7 @@ mod tests {
             ["x", "--ros2-joint-names", "a,b"],
             ["x", "--ros2-domain-id", "300"],
             ["x", "--ros2-service-mapping", "zenoh"],
+            ["x", "--ros2-distro", "noetic"],
             ["x", "--ros2-cmd-vel-topic", "cmd vel"],
         ] {
             assert!(Cli::try_parse_from(args).is_err(), "{args:?}");

@@ -160,6 +160,24 @@ pub fn from_cdr<T: RosMsg>(bytes: &[u8]) -> Result<T, MsgError> {
     r.map(|(v, _)| v).map_err(|e| err(e.to_string()))
 }
 
+/// Decodes a CDR payload (without the encapsulation header) of `T`; returns the value and the
+/// number of bytes it took (the caller decides what trailing bytes mean).
+pub fn from_cdr_payload<T: RosMsg>(
+    payload: &[u8],
+    big_endian: bool,
+) -> Result<(T, usize), MsgError> {
+    let r = if big_endian {
+        cdr_encoding::from_bytes::<T, byteorder::BigEndian>(payload)
+    } else {
+        cdr_encoding::from_bytes::<T, byteorder::LittleEndian>(payload)
+    };
+    r.map_err(|e| MsgError::Decode {
+        ty: T::DEF.name,
+        len: payload.len(),
+        message: e.to_string(),
+    })
+}
+
 /// serde for `float64[36]` (serde derives arrays up to 32 elements): a fixed-size tuple, as
 /// CDR encodes fixed arrays (no length).
 pub mod array36 {
@@ -210,7 +228,6 @@ macro_rules! rosmsg {
         impl RosMsg for $ty {
             const DEF: &'static MsgDef = &$def;
         }
-        impl ros2_client::Message for $ty {}
     };
 }
 

@@ -1,52 +1,51 @@
 //! The `rollbase` ROS 2 node: subscribes velocity and leg commands, serves `~/stop` and
-//! `~/rearm`, publishes odometry, tf, joint states, diagnostics and the supervisor state.
+//! `~/rearm`, publishes odometry, tf, joint states, diagnostics, the supervisor state and the
+//! robot model, and announces itself to `ros2 node list`.
 //!
 //! It runs on two threads of its own, never on the cycle thread:
 //!
 //! - `rollbase-ros2-cmd` runs the node's async side on a single-threaded executor: the
-//!   ros2-client spinner (discovery bookkeeping), the command subscriptions and the services.
-//!   Every command becomes a [`CommandEvent`] stamped with the time since `origin` and goes
-//!   out with `try_send`: a full command queue drops it, counts it ([`NodeStats`]) and logs it
-//!   (once per second at most).
+//!   command readers, the services, the discovery announcement and the participant's status
+//!   events (incompatible QoS). Every command becomes a [`CommandEvent`] stamped with the
+//!   time since `origin` and goes out with `try_send`: a full command queue drops it, counts
+//!   it ([`NodeStats`]) and logs it (once per second at most).
 //! - `rollbase-ros2-pub` takes [`BaseState`] values from the state channel (one per cycle) and
 //!   publishes decimated ([`super::convert::Decimator`], on cycle time). The cycle hands states
 //!   over with `try_send` on a bounded channel, so a slow DDS peer can make this thread drop
 //!   states, never delay a cycle.
 //!
-//! QoS of every topic and service: reliable, volatile, keep last 10, as ROS 2's
-//! `rmw_qos_profile_default` and `rmw_qos_profile_services_default` (the library's own
-//! subscription default is best effort, keep last 1, which ROS 2's reliable subscribers do not
-//! match).
+//! QoS (see docs/ros2.md): published topics and services reliable, volatile, keep last 10
+//! (ROS 2's defaults); the command readers best effort (they match reliable and best-effort
+//! publishers); `robot_description` and `ros_discovery_info` reliable, transient local, keep
+//! last 1. A sample that does not decode, on any endpoint, is counted for that endpoint and
+//! logged the first time with the reason; an incompatible-QoS event is logged with the policy.
 //!
 //! The node stops when the [`NodeHandle`] is dropped or shut down, or when the state
 //! channel's sender is dropped (then only the command side keeps running until shutdown).
 
 use super::convert::{self, StateSampler};
+use super::dds::{self, qos, Dds, MsgWriter, RawPayload, RawReader, RawWriter};
+use super::discovery::{self, GidLayout, NodeEntities, ParticipantEntities};
 use super::msg::{
     self, DiagnosticArray, Float64MultiArray, JointState, Odometry, RosMsg, StringMsg, TFMessage,
     TriggerRequest, TriggerResponse, Twist, TwistStamped,
 };
+use super::params;
+use super::service::{self, RequestMeta};
 use super::{Ros2Error, Ros2Options, ServiceMapping};
 use futures::{FutureExt, StreamExt};
 use rollbase_control::ports::{BaseState, CommandEvent, CommandKind};
 use rollbase_control::runtime::CommandSender;
-use ros2_client::dds::rustdds::DomainParticipantBuilder;
-use ros2_client::dds::{Context, Node, Publisher};
-use ros2_client::qos::{Durability, History, WhenFull};
-use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, QosProfile, ServiceTypeName};
+use rustdds::{
+    DomainParticipantStatusEvent, QosPolicies, RTPSEntity, SampleIdentity, SequenceNumber,
+    StatusEvented, Timestamp, WriteOptionsBuilder, GUID,
+};
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
-
-/// ROS 2's default QoS for topics and services: reliable, volatile, keep last 10.
-pub fn ros_default_qos() -> QosProfile {
-    QosProfile::publisher_default()
-        .reliability_reliable(WhenFull::DEFAULT)
-        .durability(Durability::Volatile)
-        .history(History::KeepLast { depth: 10 })
-}
 
 /// Counters of a running node (shared with its threads; read them any time).
 #[derive(Debug, Default)]
@@ -57,7 +56,7 @@ pub struct NodeStats {
     pub commands_dropped: AtomicU64,
     /// Commands refused by the node before the port (TwistStamped in a foreign frame).
     pub commands_refused: AtomicU64,
-    /// Messages that could not be received (undecodable samples).
+    /// Samples that could not be decoded, on any endpoint (per endpoint: [`Self::undecodable`]).
     pub receive_errors: AtomicU64,
     /// States taken from the state channel.
     pub states: AtomicU64,
@@ -65,13 +64,36 @@ pub struct NodeStats {
     pub published: AtomicU64,
     /// Publications that failed (e.g. a reliable reader not acknowledging in time).
     pub publish_errors: AtomicU64,
-    /// Service requests answered.
+    /// Service requests answered (both mappings).
     pub services_answered: AtomicU64,
+    /// Of those, answered in the rmw_cyclonedds mapping.
+    pub services_cyclone: AtomicU64,
+    /// Of those, answered in the enhanced (rmw_fastrtps) mapping.
+    pub services_enhanced: AtomicU64,
+    /// Incompatible-QoS events (a peer's endpoint that cannot match one of ours).
+    pub qos_incompatible: AtomicU64,
+    /// Undecodable samples per endpoint (`/cmd_vel`, `/rollbase/stop`, …).
+    pub undecodable: Mutex<BTreeMap<String, u64>>,
+    /// The `ros_discovery_info` layout announced (`None`: not yet known).
+    pub discovery_layout: Mutex<Option<GidLayout>>,
 }
 
 impl NodeStats {
     fn add(c: &AtomicU64) {
         c.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Undecodable samples per endpoint, as a copy.
+    pub fn undecodable_by_endpoint(&self) -> BTreeMap<String, u64> {
+        self.undecodable
+            .lock()
+            .map(|g| g.clone())
+            .unwrap_or_default()
+    }
+
+    /// The announced discovery layout.
+    pub fn announced_layout(&self) -> Option<GidLayout> {
+        self.discovery_layout.lock().ok().and_then(|g| *g)
     }
 }
 
@@ -151,93 +173,88 @@ impl DropLog {
     }
 }
 
-fn entity_err(
-    what: &'static str,
-    name: &str,
-) -> impl FnOnce(ros2_client::CreateError) -> Ros2Error {
-    let name = name.to_string();
-    move |e| Ros2Error::Entity {
-        what,
-        name,
-        message: format!("{e:?}"),
-    }
-}
-
-fn split_type(def: &msg::MsgDef) -> (&str, &str) {
-    let mut p = def.name.split('/');
-    let pkg = p.next().unwrap_or_default();
-    let ty = p.nth(1).unwrap_or_default();
-    (pkg, ty)
-}
-
-/// The topic `T` is published or subscribed on, with ROS 2's default QoS.
-fn ros_topic<T: RosMsg>(
-    node: &mut Node,
-    topic: &str,
-) -> Result<(ros2_client::dds::rustdds::Topic, QosProfile), Ros2Error> {
-    let (pkg, ty) = split_type(T::DEF);
-    let qos = ros_default_qos();
-    let name = Name::parse(topic).map_err(|e| Ros2Error::Entity {
-        what: "topic",
-        name: topic.into(),
-        message: format!("{e:?}"),
-    })?;
-    let t = node
-        .create_topic(&name, MessageTypeName::new(pkg, ty), &qos)
-        .map_err(entity_err("topic", topic))?;
-    Ok((t, qos))
-}
-
-/// A publisher of `T` on `topic` with ROS 2's default QoS (also for peers in tools and tests).
-pub fn publisher<T: RosMsg + ros2_client::Message>(
-    node: &mut Node,
-    topic: &str,
-) -> Result<Publisher<T>, Ros2Error> {
-    let (t, qos) = ros_topic::<T>(node, topic)?;
-    node.create_publisher::<T>(&t, Some(qos))
-        .map_err(entity_err("publisher", topic))
-}
-
-/// A subscription to `T` on `topic` with ROS 2's default QoS (also for peers in tools and tests).
-pub fn subscription<T: RosMsg + ros2_client::Message + 'static>(
-    node: &mut Node,
-    topic: &str,
-) -> Result<ros2_client::dds::Subscription<T>, Ros2Error> {
-    let (t, qos) = ros_topic::<T>(node, topic)?;
-    node.create_subscription::<T>(&t, Some(qos))
-        .map_err(entity_err("subscription", topic))
-}
-
-type TriggerServer = ros2_client::dds::Server<TriggerRequest, TriggerResponse>;
-
-/// A service in the node's private namespace (`~/name`, i.e. `/<namespace>/<node>/name`).
-fn trigger_server(
-    node: &mut Node,
-    name: &str,
-    mapping: ServiceMapping,
-) -> Result<TriggerServer, Ros2Error> {
-    let fqn = node.fully_qualified_name();
-    let n = Name::new(&fqn, name).map_err(|e| Ros2Error::Entity {
-        what: "service",
-        name: format!("{fqn}/{name}"),
-        message: format!("{e:?}"),
-    })?;
-    let mapping = match mapping {
-        ServiceMapping::Cyclone => ros2_client::ServiceMapping::Cyclone,
-        ServiceMapping::Enhanced => ros2_client::ServiceMapping::Enhanced,
-    };
-    node.create_server::<TriggerRequest, TriggerResponse>(
-        mapping,
-        &n,
-        &ServiceTypeName::new("std_srvs", "Trigger"),
-        ros_default_qos(),
-        ros_default_qos(),
-    )
-    .map_err(entity_err("service", &format!("{fqn}/{name}")))
-}
-
 /// The state the services report in their answers.
 type SharedState = Arc<Mutex<Option<String>>>;
+
+/// What a service does.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ServiceKind {
+    /// `~/stop`.
+    Stop,
+    /// `~/rearm`.
+    Rearm,
+    /// A parameter service: index into [`params::SERVICES`].
+    Param(usize),
+}
+
+/// A service's two DDS endpoints.
+struct ServiceEndpoints {
+    name: String,
+    kind: ServiceKind,
+    requests: RawReader,
+    replies: RawWriter,
+}
+
+fn service(
+    dds: &Dds,
+    absolute: &str,
+    kind: ServiceKind,
+    req: &msg::MsgDef,
+    rep: &msg::MsgDef,
+) -> Result<ServiceEndpoints, Ros2Error> {
+    let (rq, rr) = dds::service_dds_names(absolute);
+    Ok(ServiceEndpoints {
+        name: absolute.to_string(),
+        kind,
+        requests: dds.raw_reader(&rq, &req.dds_type_name(), qos::ros_default())?,
+        replies: dds.raw_writer(&rr, &rep.dds_type_name(), qos::ros_default())?,
+    })
+}
+
+/// A reply ready to write: payload, related identity, mapping.
+type Reply = (Vec<u8>, Option<service::SampleId>, ServiceMapping);
+
+/// Decodes a request of `Req` in the caller's mapping, answers it with `f`, encodes the reply.
+fn serve<Req: RosMsg, Resp: RosMsg>(
+    s: &dds::RawSample,
+    meta: &dds::SampleMeta,
+    mapping: ServiceMapping,
+    f: impl FnOnce(&Req) -> Resp,
+) -> Result<Reply, String> {
+    let req = service::decode_request::<Req>(
+        &s.payload,
+        s.big_endian,
+        &RequestMeta {
+            writer_guid: meta.writer_guid,
+            sequence_number: meta.sequence_number,
+            related: meta.related,
+        },
+        mapping,
+    )?;
+    let resp = f(&req.request);
+    let (bytes, related) =
+        service::encode_reply(&resp, &req.reply_to).map_err(|e| e.to_string())?;
+    Ok((bytes, related, req.reply_to.mapping()))
+}
+
+/// The node's endpoints by GUID, for messages about them and for its announcement.
+#[derive(Default)]
+struct Endpoints {
+    names: BTreeMap<GUID, String>,
+    readers: Vec<[u8; 16]>,
+    writers: Vec<[u8; 16]>,
+}
+
+impl Endpoints {
+    fn reader(&mut self, g: GUID, what: String) {
+        self.readers.push(g.to_bytes());
+        self.names.insert(g, what);
+    }
+    fn writer(&mut self, g: GUID, what: String) {
+        self.writers.push(g.to_bytes());
+        self.names.insert(g, what);
+    }
+}
 
 /// Starts the node: joins the DDS domain (`opts.domain_id`, else `ROS_DOMAIN_ID`, else 0),
 /// creates every topic and service, and starts the node's threads.
@@ -256,78 +273,153 @@ pub fn spawn_node(
 ) -> Result<NodeHandle, Ros2Error> {
     opts.validate(None)?;
     let domain = opts.resolve_domain_id()?;
-    let mut builder = DomainParticipantBuilder::new(domain);
-    if !opts.only_addresses.is_empty() {
-        builder = builder.with_only_networks(opts.only_addresses.iter().copied());
-    }
-    let participant = builder.build().map_err(|e| Ros2Error::Participant {
-        domain,
-        message: format!("{e:?}"),
-    })?;
-    let context =
-        Context::from_domain_participant(participant).map_err(|e| Ros2Error::Participant {
-            domain,
-            message: format!("{e:?}"),
-        })?;
-    let node_name =
-        NodeName::new(&opts.namespace, &opts.node_name).map_err(|e| Ros2Error::Option {
-            option: "--ros2-namespace",
-            message: format!("{}/{}: {e:?}", opts.namespace, opts.node_name),
-        })?;
-    let mut node = context
-        .new_node(node_name, NodeOptions::new().enable_rosout(false))
-        .map_err(|e| Ros2Error::Entity {
-            what: "node",
-            name: opts.node_name.clone(),
-            message: format!("{e:?}"),
-        })?;
+    let dds = Dds::new(domain, &opts.only_addresses)?;
+    let mut eps = Endpoints::default();
 
     // Publishers.
-    let odom_pub = publisher::<Odometry>(&mut node, &opts.topic("odom"))?;
+    let pubw = |name: &str| opts.topic(name);
+    let odom_pub = dds.writer::<Odometry>(&pubw("odom"), qos::ros_default())?;
+    eps.writer(odom_pub.guid(), format!("publisher {}", pubw("odom")));
     let tf_pub = if opts.publish_tf {
-        Some(publisher::<TFMessage>(&mut node, &opts.topic("tf"))?)
+        let w = dds.writer::<TFMessage>(&pubw("tf"), qos::ros_default())?;
+        eps.writer(w.guid(), format!("publisher {}", pubw("tf")));
+        Some(w)
     } else {
         None
     };
-    let joints_pub = publisher::<JointState>(&mut node, &opts.topic("joint_states"))?;
-    let diag_pub = publisher::<DiagnosticArray>(&mut node, &opts.topic("diagnostics"))?;
-    let state_pub = publisher::<StringMsg>(&mut node, &opts.topic("supervisor_state"))?;
-
-    // Commands.
-    let cmd_vel = if opts.cmd_vel_stamped {
-        CmdVelSub::Stamped(subscription::<TwistStamped>(
-            &mut node,
-            &opts.topic(&opts.cmd_vel_topic),
-        )?)
-    } else {
-        CmdVelSub::Plain(subscription::<Twist>(
-            &mut node,
-            &opts.topic(&opts.cmd_vel_topic),
-        )?)
+    let joints_pub = dds.writer::<JointState>(&pubw("joint_states"), qos::ros_default())?;
+    eps.writer(
+        joints_pub.guid(),
+        format!("publisher {}", pubw("joint_states")),
+    );
+    let diag_pub = dds.writer::<DiagnosticArray>(&pubw("diagnostics"), qos::ros_default())?;
+    eps.writer(
+        diag_pub.guid(),
+        format!("publisher {}", pubw("diagnostics")),
+    );
+    let state_pub = dds.writer::<StringMsg>(&pubw("supervisor_state"), qos::ros_default())?;
+    eps.writer(
+        state_pub.guid(),
+        format!("publisher {}", pubw("supervisor_state")),
+    );
+    let description_pub = match &opts.robot_description {
+        Some(urdf) => {
+            let topic = pubw("robot_description");
+            let w = dds.writer::<StringMsg>(&topic, qos::latched())?;
+            eps.writer(w.guid(), format!("publisher {topic}"));
+            // Transient local: every subscriber that joins later gets it too.
+            w.write(StringMsg { data: urdf.clone() }, None)
+                .map_err(|e| Ros2Error::Entity {
+                    what: "publication",
+                    name: topic.clone(),
+                    message: format!("{e:?}"),
+                })?;
+            Some(w)
+        }
+        None => None,
     };
-    let legs = subscription::<Float64MultiArray>(&mut node, &opts.topic(&opts.leg_topic))?;
-    let stop_srv = trigger_server(&mut node, "stop", opts.service_mapping)?;
-    let rearm_srv = trigger_server(&mut node, "rearm", opts.service_mapping)?;
-    let spinner = node.spinner().map_err(entity_err("spinner", "node"))?;
+
+    // Commands: best-effort readers take reliable and best-effort publishers alike.
+    let vel_topic = opts.topic(&opts.cmd_vel_topic);
+    let vel_type = if opts.cmd_vel_stamped {
+        TwistStamped::DEF
+    } else {
+        Twist::DEF
+    };
+    let cmd_vel = dds.raw_reader(
+        &dds::topic_dds_name(&vel_topic),
+        &vel_type.dds_type_name(),
+        qos::any_publisher(),
+    )?;
+    eps.reader(cmd_vel.guid(), format!("subscription {vel_topic}"));
+    let leg_topic = opts.topic(&opts.leg_topic);
+    let legs = dds.raw_reader(
+        &dds::topic_dds_name(&leg_topic),
+        &Float64MultiArray::DEF.dds_type_name(),
+        qos::any_publisher(),
+    )?;
+    eps.reader(legs.guid(), format!("subscription {leg_topic}"));
+    let fqn = opts.node_fqn();
+    let (tq, tr) = (&msg::TRIGGER_REQUEST, &msg::TRIGGER_RESPONSE);
+    let mut services = vec![
+        service(&dds, &format!("{fqn}/stop"), ServiceKind::Stop, tq, tr)?,
+        service(&dds, &format!("{fqn}/rearm"), ServiceKind::Rearm, tq, tr)?,
+    ];
+    for (i, (name, rq, rp)) in params::SERVICES.iter().enumerate() {
+        let abs = format!("{fqn}/{name}");
+        services.push(service(&dds, &abs, ServiceKind::Param(i), rq, rp)?);
+    }
+    for s in &services {
+        eps.reader(s.requests.guid(), format!("service {} (requests)", s.name));
+        eps.writer(s.replies.guid(), format!("service {} (replies)", s.name));
+    }
+
+    // The node's announcement (ros_discovery_info) and the peers'.
+    let announce_w = dds.raw_writer(discovery::TOPIC, discovery::TYPE_NAME, qos::latched())?;
+    // Keyless: every peer's announcement is one instance; keep more than the last one.
+    let announce_r = dds.raw_reader(
+        discovery::TOPIC,
+        discovery::TYPE_NAME,
+        rustdds::QosPolicyBuilder::new()
+            .reliability(rustdds::policy::Reliability::Reliable {
+                max_blocking_time: rustdds::Duration::from_millis(100),
+            })
+            .durability(rustdds::policy::Durability::TransientLocal)
+            .history(rustdds::policy::History::KeepLast { depth: 32 })
+            .build(),
+    )?;
+    let me = ParticipantEntities {
+        gid: dds.guid().to_bytes(),
+        nodes: vec![NodeEntities {
+            namespace: opts.namespace.clone(),
+            name: opts.node_name.clone(),
+            readers: eps.readers.clone(),
+            writers: eps.writers.clone(),
+        }],
+    };
+    let ros_distro = std::env::var("ROS_DISTRO").ok();
+    let (layout, warning) = discovery::choose_layout(opts.distro, ros_distro.as_deref());
+    if let Some(w) = warning {
+        tracing::warn!("ros2: {w}");
+    }
 
     let stop = Arc::new(AtomicBool::new(false));
     let stats = Arc::new(NodeStats::default());
     let shared: SharedState = Arc::new(Mutex::new(None));
     let (wake_tx, wake_rx) = futures::channel::oneshot::channel::<()>();
 
-    let cmd_side = CommandSide {
+    let mut cmd_side = CommandSide {
         cmd_tx,
         origin,
         stats: stats.clone(),
         shared: shared.clone(),
         base_frame: opts.frames.base.clone(),
+        cmd_vel_stamped: opts.cmd_vel_stamped,
+        mapping: opts.service_mapping,
         drops: DropLog::new(),
+        logged_endpoints: BTreeSet::new(),
+        logged_qos: BTreeSet::new(),
+        names: eps.names,
+        vel_topic,
+        leg_topic,
+        announcement: me,
+        announce_w,
+        layout: None,
+        mixed_warned: false,
     };
+    if let Some(l) = layout {
+        cmd_side.announce(l, "from --ros2-distro or ROS_DISTRO");
+    } else {
+        tracing::info!(
+            "ros2: ROS_DISTRO is not set: rollbase announces its node to `ros2 node list` once the first ROS 2 peer shows which release it runs (or give --ros2-distro)"
+        );
+    }
+    let participant = dds.participant().clone();
     let cmd_thread = std::thread::Builder::new()
         .name("rollbase-ros2-cmd".into())
         .spawn(move || {
             futures::executor::block_on(
-                cmd_side.run(node, spinner, cmd_vel, legs, stop_srv, rearm_srv, wake_rx),
+                cmd_side.run(dds, cmd_vel, legs, services, announce_r, wake_rx),
             )
         })
         .map_err(|source| Ros2Error::Thread {
@@ -344,6 +436,8 @@ pub fn spawn_node(
         joints_pub,
         diag_pub,
         state_pub,
+        _description_pub: description_pub,
+        _participant: participant,
     };
     let stop2 = stop.clone();
     let pub_thread = std::thread::Builder::new()
@@ -369,9 +463,38 @@ pub fn spawn_node(
     Ok(handle)
 }
 
-enum CmdVelSub {
-    Plain(ros2_client::dds::Subscription<Twist>),
-    Stamped(ros2_client::dds::Subscription<TwistStamped>),
+/// The policy an incompatible-QoS event is about, with both sides' values.
+fn qos_detail(offered: &QosPolicies, requested: &QosPolicies) -> String {
+    match offered.compliance_failure_wrt(requested) {
+        Some(id) => {
+            use rustdds::dds::qos::QosPolicyId as P;
+            let sides = match id {
+                P::Reliability => format!(
+                    " (offered {:?}, requested {:?})",
+                    offered.reliability(),
+                    requested.reliability()
+                ),
+                P::Durability => format!(
+                    " (offered {:?}, requested {:?})",
+                    offered.durability(),
+                    requested.durability()
+                ),
+                P::Deadline => format!(
+                    " (offered {:?}, requested {:?})",
+                    offered.deadline(),
+                    requested.deadline()
+                ),
+                P::Liveliness => format!(
+                    " (offered {:?}, requested {:?})",
+                    offered.liveliness(),
+                    requested.liveliness()
+                ),
+                _ => String::new(),
+            };
+            format!("policy {id:?}{sides}")
+        }
+        None => "a policy rustdds did not name".into(),
+    }
 }
 
 struct CommandSide {
@@ -380,7 +503,20 @@ struct CommandSide {
     stats: Arc<NodeStats>,
     shared: SharedState,
     base_frame: String,
+    cmd_vel_stamped: bool,
+    mapping: ServiceMapping,
     drops: DropLog,
+    /// Endpoints whose first undecodable sample was logged.
+    logged_endpoints: BTreeSet<String>,
+    /// (endpoint, policy) pairs whose incompatible-QoS event was logged.
+    logged_qos: BTreeSet<(GUID, String)>,
+    names: BTreeMap<GUID, String>,
+    vel_topic: String,
+    leg_topic: String,
+    announcement: ParticipantEntities,
+    announce_w: RawWriter,
+    layout: Option<GidLayout>,
+    mixed_warned: bool,
 }
 
 impl CommandSide {
@@ -408,6 +544,26 @@ impl CommandSide {
                     .log("command port closed: the cycle no longer takes commands");
                 false
             }
+        }
+    }
+
+    /// Counts an undecodable sample on `endpoint`; the first one is logged with the reason.
+    fn undecodable(&mut self, endpoint: &str, what: &str, reason: &str) {
+        NodeStats::add(&self.stats.receive_errors);
+        let n = match self.stats.undecodable.lock() {
+            Ok(mut g) => {
+                let c = g.entry(endpoint.to_string()).or_insert(0);
+                *c += 1;
+                *c
+            }
+            Err(_) => 0,
+        };
+        if self.logged_endpoints.insert(endpoint.to_string()) {
+            tracing::warn!(
+                "ros2: {endpoint}: a {what} did not decode and was dropped: {reason}. Further ones on this endpoint are counted, not logged (the count is in the node's summary line)"
+            );
+        } else {
+            tracing::debug!("ros2: {endpoint}: undecodable {what} #{n}: {reason}");
         }
     }
 
@@ -443,99 +599,292 @@ impl CommandSide {
         TriggerResponse { success, message }
     }
 
-    #[allow(clippy::too_many_arguments)]
-    async fn run(
-        mut self,
-        node: Node,
-        spinner: ros2_client::dds::Spinner,
-        cmd_vel: CmdVelSub,
-        legs: ros2_client::dds::Subscription<Float64MultiArray>,
-        stop_srv: TriggerServer,
-        rearm_srv: TriggerServer,
-        wake: futures::channel::oneshot::Receiver<()>,
-    ) {
-        let spin = spinner.spin().fuse();
-        futures::pin_mut!(spin);
-        let mut wake = wake.fuse();
-        let legs_s = legs.async_stream();
-        let stop_s = stop_srv.receive_request_stream();
-        let rearm_s = rearm_srv.receive_request_stream();
-        futures::pin_mut!(legs_s, stop_s, rearm_s);
-        // One stream of velocity commands, whichever type.
-        let mut vel_s = match &cmd_vel {
-            CmdVelSub::Plain(s) => s
-                .async_stream()
-                .map(|r| r.map(|(m, _)| (None, m)).map_err(|e| format!("{e:?}")))
-                .boxed_local(),
-            CmdVelSub::Stamped(s) => s
-                .async_stream()
-                .map(|r| {
-                    r.map(|(m, _)| (Some(m.header.frame_id), m.twist))
-                        .map_err(|e| format!("{e:?}"))
-                })
-                .boxed_local(),
-        }
-        .fuse();
-        let mut refused = DropLog::new();
-        let mut recv_err = DropLog::new();
-        loop {
-            futures::select! {
-                _ = wake => break,
-                r = spin => {
-                    if let Err(e) = r {
-                        tracing::error!("ros2: the node's spinner stopped: {e:?}");
-                    }
+    /// Writes the node's announcement in `layout` (once; later layouts only warn).
+    fn announce(&mut self, layout: GidLayout, why: &str) {
+        match self.layout {
+            Some(l) if l == layout => {}
+            Some(l) => {
+                if !self.mixed_warned {
+                    self.mixed_warned = true;
+                    tracing::warn!(
+                        "ros2: a peer announces its nodes with the {layout}, others with the {l}: ROS 2 releases do not mix in one domain; rollbase stays visible to the {l} peers"
+                    );
                 }
-                v = vel_s.next() => match v {
-                    Some(Ok((frame, twist))) => {
-                        match frame {
-                            Some(f) if !f.is_empty() && f != self.base_frame => {
-                                NodeStats::add(&self.stats.commands_refused);
-                                refused.log(&format!(
-                                    "velocity command in frame {f:?} ignored: rollbase takes body twists in {:?} (or an empty frame_id)",
-                                    self.base_frame
-                                ));
-                            }
-                            _ => {
-                                self.send(convert::motion_command(&twist));
-                            }
+            }
+            None => {
+                let bytes = discovery::encode(&self.announcement, layout);
+                match self.announce_w.write(RawPayload(bytes), None) {
+                    Ok(()) => {
+                        self.layout = Some(layout);
+                        if let Ok(mut g) = self.stats.discovery_layout.lock() {
+                            *g = Some(layout);
                         }
+                        tracing::info!(
+                            "ros2: node announced on ros_discovery_info with the {layout} ({why})"
+                        );
                     }
-                    Some(Err(e)) => {
-                        NodeStats::add(&self.stats.receive_errors);
-                        recv_err.log(&format!("undecodable velocity command: {e}"));
-                    }
-                    None => break,
-                },
-                l = legs_s.next() => match l {
-                    Some(Ok((m, _))) => {
-                        self.send(convert::legs_command(&m.data));
-                    }
-                    Some(Err(e)) => {
-                        NodeStats::add(&self.stats.receive_errors);
-                        recv_err.log(&format!("undecodable leg command: {e:?}"));
-                    }
-                    None => break,
-                },
-                r = stop_s.next() => if let Some(Ok((id, _))) = r {
-                    let queued = self.send(CommandKind::Stop);
-                    let resp = self.answer("stop", queued);
-                    if stop_srv.async_send_response(id, resp).await.is_ok() {
-                        NodeStats::add(&self.stats.services_answered);
-                    }
-                },
-                r = rearm_s.next() => if let Some(Ok((id, _))) = r {
-                    let queued = self.send(CommandKind::Rearm);
-                    let resp = self.answer("rearm", queued);
-                    if rearm_srv.async_send_response(id, resp).await.is_ok() {
-                        NodeStats::add(&self.stats.services_answered);
-                    }
-                },
+                    Err(e) => tracing::warn!("ros2: announcing the node failed: {e:?}"),
+                }
             }
         }
-        drop(vel_s);
+    }
+
+    /// A velocity or leg command sample.
+    fn command(&mut self, legs: bool, s: &dds::RawSample) {
+        if legs {
+            match dds::decode::<Float64MultiArray>(s) {
+                Ok(m) => {
+                    self.send(convert::legs_command(&m.data));
+                }
+                Err(e) => {
+                    let ep = self.leg_topic.clone();
+                    self.undecodable(&ep, "std_msgs/msg/Float64MultiArray", &e);
+                }
+            }
+            return;
+        }
+        let decoded = if self.cmd_vel_stamped {
+            dds::decode::<TwistStamped>(s).map(|m| (Some(m.header.frame_id), m.twist))
+        } else {
+            dds::decode::<Twist>(s).map(|m| (None, m))
+        };
+        match decoded {
+            Ok((Some(f), _)) if !f.is_empty() && f != self.base_frame => {
+                NodeStats::add(&self.stats.commands_refused);
+                let base = self.base_frame.clone();
+                self.drops.log(&format!(
+                    "velocity command in frame {f:?} ignored: rollbase takes body twists in {base:?} (or an empty frame_id)"
+                ));
+            }
+            Ok((_, twist)) => {
+                self.send(convert::motion_command(&twist));
+            }
+            Err(e) => {
+                let ep = self.vel_topic.clone();
+                let ty = if self.cmd_vel_stamped {
+                    TwistStamped::DEF.name
+                } else {
+                    Twist::DEF.name
+                };
+                self.undecodable(&ep, ty, &e);
+            }
+        }
+    }
+
+    /// A service request: decoded in the caller's mapping, carried out, answered likewise.
+    async fn request(
+        &mut self,
+        srv: &ServiceEndpoints,
+        dcc: rustdds::no_key::DeserializedCacheChange<dds::RawSample>,
+    ) {
+        let meta = dds::sample_meta(&dcc);
+        let s = dcc.into_value();
+        let m = self.mapping;
+        let reply = match srv.kind {
+            ServiceKind::Stop | ServiceKind::Rearm => {
+                let (kind, which) = if srv.kind == ServiceKind::Stop {
+                    (CommandKind::Stop, "stop")
+                } else {
+                    (CommandKind::Rearm, "rearm")
+                };
+                // Decoded before the command is passed on: an undecodable request does nothing.
+                match service::decode_request::<TriggerRequest>(
+                    &s.payload,
+                    s.big_endian,
+                    &RequestMeta {
+                        writer_guid: meta.writer_guid,
+                        sequence_number: meta.sequence_number,
+                        related: meta.related,
+                    },
+                    m,
+                ) {
+                    Err(e) => Err(e),
+                    Ok(_) => {
+                        let queued = self.send(kind);
+                        let resp = self.answer(which, queued);
+                        serve::<TriggerRequest, TriggerResponse>(&s, &meta, m, |_| resp)
+                    }
+                }
+            }
+            ServiceKind::Param(0) => serve(&s, &meta, m, params::answer_list),
+            ServiceKind::Param(1) => serve(&s, &meta, m, params::answer_get),
+            ServiceKind::Param(2) => serve(&s, &meta, m, params::answer_types),
+            ServiceKind::Param(3) => serve(&s, &meta, m, params::answer_describe),
+            ServiceKind::Param(4) => serve(&s, &meta, m, params::answer_set),
+            ServiceKind::Param(_) => serve(&s, &meta, m, params::answer_set_atomically),
+        };
+        let (bytes, related, mapping) = match reply {
+            Ok(r) => r,
+            Err(e) => {
+                self.undecodable(&srv.name, "service request", &e);
+                return;
+            }
+        };
+        let mut wo = WriteOptionsBuilder::new().source_timestamp(Timestamp::now());
+        if let Some((g, sn)) = related {
+            wo = wo.related_sample_identity(SampleIdentity {
+                writer_guid: GUID::from_bytes(g),
+                sequence_number: SequenceNumber::from(sn),
+            });
+        }
+        match srv
+            .replies
+            .async_write_with_options(RawPayload(bytes), wo.build())
+            .await
+        {
+            Ok(_) => {
+                NodeStats::add(&self.stats.services_answered);
+                NodeStats::add(match mapping {
+                    ServiceMapping::Enhanced => &self.stats.services_enhanced,
+                    _ => &self.stats.services_cyclone,
+                });
+                tracing::debug!("ros2: {} answered in the {mapping:?} mapping", srv.name);
+            }
+            Err(e) => tracing::warn!("ros2: {}: the reply could not be sent: {e:?}", srv.name),
+        }
+    }
+
+    /// A peer's `ros_discovery_info` sample: its layout decides ours (when not fixed yet).
+    fn peer_announcement(&mut self, meta: &dds::SampleMeta, s: &dds::RawSample) {
+        if meta.writer_guid[..12] == self.announcement.gid[..12] {
+            return; // our own
+        }
+        if let Some((layout, p)) = discovery::detect_layout(&s.payload, s.big_endian) {
+            let names: Vec<String> = p
+                .nodes
+                .iter()
+                .map(|n| {
+                    if n.namespace == "/" {
+                        format!("/{}", n.name)
+                    } else {
+                        format!("{}/{}", n.namespace, n.name)
+                    }
+                })
+                .collect();
+            tracing::debug!("ros2: peer participant with nodes {names:?} ({layout})");
+            self.announce(layout, "detected from a peer's announcement");
+        }
+    }
+
+    /// A participant status event: incompatible QoS on one of our endpoints is logged (once
+    /// per endpoint and policy) and counted.
+    fn status(&mut self, ev: DomainParticipantStatusEvent) {
+        let (local, remote, requested, offered, side) = match ev {
+            DomainParticipantStatusEvent::RemoteWriterQosIncompatible {
+                local_reader,
+                remote_writer,
+                requested_qos,
+                offered_qos,
+            } => (
+                local_reader,
+                remote_writer,
+                requested_qos,
+                offered_qos,
+                "a publisher",
+            ),
+            DomainParticipantStatusEvent::RemoteReaderQosIncompatible {
+                local_writer,
+                remote_reader,
+                requested_qos,
+                offered_qos,
+            } => (
+                local_writer,
+                remote_reader,
+                requested_qos,
+                offered_qos,
+                "a subscriber",
+            ),
+            _ => return,
+        };
+        let Some(name) = self.names.get(&local).cloned() else {
+            return;
+        };
+        NodeStats::add(&self.stats.qos_incompatible);
+        let detail = qos_detail(&offered, &requested);
+        if self.logged_qos.insert((local, detail.clone())) {
+            tracing::warn!(
+                "ros2: {name}: {side} ({:02x?}) has incompatible QoS, they do not match: {detail}",
+                &remote.to_bytes()[..12]
+            );
+        }
+    }
+
+    async fn run(
+        mut self,
+        dds: Dds,
+        cmd_vel: RawReader,
+        legs: RawReader,
+        services: Vec<ServiceEndpoints>,
+        announcements: RawReader,
+        wake: futures::channel::oneshot::Receiver<()>,
+    ) {
+        let mut wake = wake.fuse();
+        {
+            let listener = dds.participant().status_listener();
+            let status_s = listener.as_async_status_stream().fuse();
+            let vel_s = cmd_vel.as_async_stream();
+            let legs_s = legs.as_async_stream();
+            // Every service's requests, tagged with the service's index.
+            let mut requests_s =
+                futures::stream::select_all(services.iter().enumerate().map(|(i, srv)| {
+                    srv.requests
+                        .as_async_stream()
+                        .map(move |r| (i, r))
+                        .boxed_local()
+                }));
+            let ann_s = announcements.as_async_stream();
+            futures::pin_mut!(status_s, vel_s, legs_s, ann_s);
+            loop {
+                futures::select! {
+                    _ = wake => break,
+                    ev = status_s.next() => if let Some(ev) = ev {
+                        // Status events only inform; if they ever end, commands go on.
+                        self.status(ev);
+                    },
+                    v = vel_s.next() => match v {
+                        Some(Ok(dcc)) => self.command(false, &dcc.into_value()),
+                        Some(Err(e)) => {
+                            let ep = self.vel_topic.clone();
+                            self.undecodable(&ep, "velocity command", &e.to_string());
+                        }
+                        None => break,
+                    },
+                    l = legs_s.next() => match l {
+                        Some(Ok(dcc)) => self.command(true, &dcc.into_value()),
+                        Some(Err(e)) => {
+                            let ep = self.leg_topic.clone();
+                            self.undecodable(&ep, "leg command", &e.to_string());
+                        }
+                        None => break,
+                    },
+                    r = requests_s.next() => match r {
+                        Some((i, Ok(dcc))) => self.request(&services[i], dcc).await,
+                        Some((i, Err(e))) => {
+                            let ep = services[i].name.clone();
+                            self.undecodable(&ep, "service request", &e.to_string());
+                        }
+                        None => break,
+                    },
+                    a = ann_s.next() => match a {
+                        Some(Ok(dcc)) => {
+                            let meta = dds::sample_meta(&dcc);
+                            self.peer_announcement(&meta, &dcc.into_value());
+                        }
+                        // Not ours to count: a peer's discovery data, not a message to us.
+                        Some(Err(e)) => tracing::debug!("ros2: ros_discovery_info sample: {e}"),
+                        None => break,
+                    },
+                }
+            }
+        }
+        // Endpoints before their participant: rustdds reports an error for an endpoint
+        // removed after its participant's event loop stopped.
+        drop(self);
+        drop(services);
         drop(cmd_vel);
-        drop(node);
+        drop(legs);
+        drop(announcements);
+        drop(dds);
     }
 }
 
@@ -543,11 +892,15 @@ struct PublishSide {
     opts: Ros2Options,
     stats: Arc<NodeStats>,
     shared: SharedState,
-    odom_pub: Publisher<Odometry>,
-    tf_pub: Option<Publisher<TFMessage>>,
-    joints_pub: Publisher<JointState>,
-    diag_pub: Publisher<DiagnosticArray>,
-    state_pub: Publisher<StringMsg>,
+    odom_pub: MsgWriter<Odometry>,
+    tf_pub: Option<MsgWriter<TFMessage>>,
+    joints_pub: MsgWriter<JointState>,
+    diag_pub: MsgWriter<DiagnosticArray>,
+    state_pub: MsgWriter<StringMsg>,
+    /// Kept for its transient-local sample.
+    _description_pub: Option<MsgWriter<StringMsg>>,
+    /// Keeps the participant alive while this thread publishes.
+    _participant: rustdds::DomainParticipant,
 }
 
 impl PublishSide {
@@ -581,23 +934,23 @@ impl PublishSide {
                 tracing::warn!("ros2: {w}");
             }
             if let Some(o) = m.odom {
-                let r = self.odom_pub.publish(o);
+                let r = self.odom_pub.write(o, None);
                 self.count(r.map_err(drop), &mut errors, "odom");
             }
             if let (Some(t), Some(p)) = (m.tf, &self.tf_pub) {
-                let r = p.publish(t);
+                let r = p.write(t, None);
                 self.count(r.map_err(drop), &mut errors, "tf");
             }
             if let Some(j) = m.joint_states {
-                let r = self.joints_pub.publish(j);
+                let r = self.joints_pub.write(j, None);
                 self.count(r.map_err(drop), &mut errors, "joint_states");
             }
             if let Some(d) = m.diagnostics {
-                let r = self.diag_pub.publish(d);
+                let r = self.diag_pub.write(d, None);
                 self.count(r.map_err(drop), &mut errors, "diagnostics");
             }
             if let Some(t) = m.supervisor_state {
-                let r = self.state_pub.publish(t);
+                let r = self.state_pub.write(t, None);
                 self.count(r.map_err(drop), &mut errors, "supervisor_state");
             }
         }
@@ -610,8 +963,7 @@ mod tests {
     use rollbase_control::supervisor::SupervisorState;
 
     const CHILD_ENV: &str = "ROLLBASE_TEST_IN_NETNS";
-    const TEST_NAME: &str =
-        "ros2::node::tests::node_talks_to_a_ros2_client_peer_in_a_private_netns";
+    const TEST_NAME: &str = "ros2::node::tests::node_talks_to_a_rustdds_peer_in_a_private_netns";
 
     /// Whether this process's network namespace has no interface but loopback.
     fn only_loopback() -> bool {
@@ -629,7 +981,7 @@ mod tests {
     /// re-executes itself in a private network namespace (`unshare -n`, needs root or user
     /// namespaces) whose only interface is loopback, and says "skipped" when it cannot.
     #[test]
-    fn node_talks_to_a_ros2_client_peer_in_a_private_netns() {
+    fn node_talks_to_a_rustdds_peer_in_a_private_netns() {
         if std::env::var(CHILD_ENV).is_ok() {
             assert!(
                 only_loopback(),
@@ -682,17 +1034,13 @@ mod tests {
         let origin = Instant::now();
         let node = spawn_node(opts, cmd_tx, state_rx, origin).expect("node starts");
 
-        let ctx =
-            Context::from_domain_participant(DomainParticipantBuilder::new(0).build().unwrap())
-                .unwrap();
-        let mut peer = ctx
-            .new_node(
-                NodeName::new("/", "peer").unwrap(),
-                NodeOptions::new().enable_rosout(false),
-            )
+        let peer = Dds::new(0, &[]).unwrap();
+        let twist_pub = peer
+            .writer::<Twist>("/nstest/cmd_vel", qos::ros_default())
             .unwrap();
-        let twist_pub = publisher::<Twist>(&mut peer, "/nstest/cmd_vel").unwrap();
-        let odom_sub = subscription::<Odometry>(&mut peer, "/nstest/odom").unwrap();
+        let odom_sub = peer
+            .reader::<Odometry>("/nstest/odom", qos::ros_default())
+            .unwrap();
 
         let deadline = Instant::now() + Duration::from_secs(20);
         let mut k = 0u64;
@@ -712,14 +1060,14 @@ mod tests {
             s.odometry.pose.x = 1.5;
             let _ = state_tx.try_send(s);
             k += 1;
-            if let Ok(Some((o, _))) = odom_sub.take() {
+            if let Ok(Some(o)) = odom_sub.take() {
                 odom = Some(o);
             }
             // Once the peer sees the node, send commands until one is dropped.
             if odom.is_some() && sent < 50 && k.is_multiple_of(10) {
                 let mut t = Twist::default();
                 t.linear.x = 0.25 + sent as f64;
-                if twist_pub.publish(t).is_ok() {
+                if twist_pub.write(t, None).is_ok() {
                     sent += 1;
                 }
             }

@@ -105,11 +105,15 @@ pub struct Track {
     pub late_cycles: u64,
     /// Largest per-cycle wheel-speed change after the fault (rad/s).
     pub max_dv_after_fault: f64,
-    /// Largest commanded steering rate after the fault (rad/s).
-    pub max_steer_after_fault: f64,
+    /// Largest growth of a commanded steering rate's magnitude from one cycle to the next
+    /// after the fault (rad/s; 0 when the steering only winds down or holds).
+    pub max_steer_growth_after_fault: f64,
+    /// Largest per-cycle steering-rate change after the fault (rad/s).
+    pub max_dsteer_after_fault: f64,
     /// Last command's largest wheel speed (rad/s).
     pub last_speed: f64,
     prev_speeds: [f64; MAX_WHEELS],
+    prev_steer: [f64; MAX_WHEELS],
     /// Records seen.
     pub cycles: u64,
 }
@@ -142,21 +146,29 @@ impl Track {
                 self.max_dv_after_fault = self
                     .max_dv_after_fault
                     .max((w.wheel_speed - self.prev_speeds[i]).abs());
-                self.max_steer_after_fault = self.max_steer_after_fault.max(w.steer_rate.abs());
+                let prev = self.prev_steer[i];
+                self.max_steer_growth_after_fault = self
+                    .max_steer_growth_after_fault
+                    .max(w.steer_rate.abs() - prev.abs());
+                self.max_dsteer_after_fault =
+                    self.max_dsteer_after_fault.max((w.steer_rate - prev).abs());
             }
             self.prev_speeds[i] = w.wheel_speed;
+            self.prev_steer[i] = w.steer_rate;
             peak = peak.max(w.wheel_speed.abs());
         }
         self.last_speed = peak;
         self.last_state = Some(r.state);
     }
 
-    /// The fault was a controlled stop: speed steps within `accel·dt` (plus rounding),
-    /// steering held, wheels at rest at the end.
+    /// The fault was a controlled stop: speed steps within `accel·dt` (plus rounding), the
+    /// steering winding down within its acceleration limit and then held (never turning
+    /// faster than when the fault came), wheels at rest at the end.
     pub fn controlled_stop(&self, p: &Platform) -> bool {
         self.fault.is_some()
             && self.max_dv_after_fault <= p.limits.wheel_accel * p.dt() + 1e-9
-            && self.max_steer_after_fault == 0.0
+            && self.max_steer_growth_after_fault <= 1e-12
+            && self.max_dsteer_after_fault <= p.limits.steer_accel * p.dt() + 1e-9
             && self.last_speed == 0.0
     }
 }

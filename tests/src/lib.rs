@@ -4,6 +4,7 @@
 
 pub mod alloc_count;
 pub mod campaign;
+pub mod flow;
 
 use rollbase_control::record::CycleRecord;
 use rollbase_control::runtime::{
@@ -43,6 +44,12 @@ pub struct RunOptions {
     pub sim_platform: Option<Platform>,
     /// Waypoints of a quintic-spline trajectory used instead of the scenario's.
     pub waypoints: Option<Vec<rollbase_control::trajectory::Waypoint>>,
+    /// Waypoints whose times may be left open (time-scaled by the runtime), used instead of
+    /// the scenario's and of `waypoints`.
+    pub waypoint_specs: Option<Vec<rollbase_control::trajectory::WaypointSpec>>,
+    /// Give up after this many seconds of platform time (`None`: the trajectory's duration
+    /// plus `slack_s`, which never ends for a plan that does not).
+    pub max_seconds: Option<f64>,
     /// Wire profile of the controller and the simulated devices.
     pub profile: Protocol,
     /// Serialize the simulator's frames on a bus of this bit rate (`None`: every frame
@@ -65,6 +72,8 @@ impl RunOptions {
             start_at_reference: true,
             sim_platform: None,
             waypoints: None,
+            waypoint_specs: None,
+            max_seconds: None,
             profile: Protocol::Native,
             sim_bitrate: None,
         }
@@ -103,6 +112,9 @@ pub struct RunOutcome {
     pub after_end: Vec<rollbase_driver::frame::CanFrame>,
     /// The state port's value after the last cycle (live runs).
     pub final_state: Option<rollbase_control::ports::BaseState>,
+    /// The timing of a time-scaled trajectory as the core planned it (`None` for live
+    /// commands or an unscaled trajectory).
+    pub timing: Option<rollbase_control::timescale::Timing>,
 }
 
 /// Simulated time the devices run on after the controller's last cycle.
@@ -113,13 +125,20 @@ pub const AFTER_END: std::time::Duration = std::time::Duration::from_millis(500)
 pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstepBus, f64), String> {
     let mut platform = Platform::justin();
     platform.protocol = opts.profile;
-    let traj: Box<dyn rollbase_control::trajectory::Trajectory> = match &opts.waypoints {
-        Some(w) => Box::new(
-            rollbase_control::trajectory::QuinticSpline::new(&platform, w)
-                .map_err(|e| e.to_string())?,
-        ),
-        None => scenario::trajectory(opts.scenario, &platform).map_err(|e| e.to_string())?,
-    };
+    let traj: Box<dyn rollbase_control::trajectory::Trajectory> =
+        match (&opts.waypoint_specs, &opts.waypoints) {
+            (Some(w), _) => Box::new(
+                rollbase_control::trajectory::QuinticSpline::from_specs(&platform, w)
+                    .map_err(|e| e.to_string())?,
+            ),
+            (None, Some(w)) => Box::new(
+                rollbase_control::trajectory::QuinticSpline::new(&platform, w)
+                    .map_err(|e| e.to_string())?,
+            ),
+            (None, None) => {
+                scenario::trajectory(opts.scenario, &platform).map_err(|e| e.to_string())?
+            }
+        };
     let duration = traj.duration();
     let r0 = traj.sample(0.0);
     let core =
@@ -149,8 +168,10 @@ pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstep
 pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]])) -> RunOutcome {
     let (mut core, mut sim, mut bus, duration) = build(opts).expect("valid setup");
     let platform = core.platform().clone();
-    let max_cycles = ((duration + opts.slack_s) * platform.cycle_hz) as u64;
-    let mut records = Vec::with_capacity(max_cycles as usize);
+    let timing = core.trajectory_timing();
+    let seconds = opts.max_seconds.unwrap_or(duration + opts.slack_s);
+    let max_cycles = (seconds * platform.cycle_hz) as u64;
+    let mut records = Vec::with_capacity(max_cycles.min(1 << 14) as usize);
     let mut summary = RunSummary::new(opts.scenario.name());
     let report = run_lockstep(
         &mut core,
@@ -186,6 +207,7 @@ pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]
         final_drive_states,
         after_end,
         final_state: None,
+        timing,
     }
 }
 
@@ -245,8 +267,9 @@ pub fn assert_seed000_bounds(out: &RunOutcome) {
 }
 
 /// Asserts the supervisor's controlled stop from the record of cycle `from` on: every
-/// commanded wheel speed changes by at most the wheel acceleration limit per cycle, steering
-/// is held (zero rate), and the state stays Fault (latched).
+/// commanded wheel speed changes by at most the wheel acceleration limit per cycle, every
+/// steering rate winds down to zero within the steering acceleration limit (it never grows:
+/// the steering is held once it is at rest), and the state stays Fault (latched).
 pub fn assert_controlled_stop_from(out: &RunOutcome, from: u64) {
     let p = &out.platform;
     let after: Vec<_> = out.records.iter().filter(|r| r.cycle >= from).collect();
@@ -261,9 +284,14 @@ pub fn assert_controlled_stop_from(out: &RunOutcome, from: u64) {
                 "cycle {}: wheel {i} speed step {dv} rad/s",
                 pair[1].cycle
             );
-            assert_eq!(
-                pair[1].command.wheels[i].steer_rate, 0.0,
-                "cycle {}: steering not held",
+            let (s0, s1) = (
+                pair[0].command.wheels[i].steer_rate,
+                pair[1].command.wheels[i].steer_rate,
+            );
+            assert!(
+                s1.abs() <= s0.abs()
+                    && (s1 - s0).abs() <= p.limits.steer_accel * p.dt() * (1.0 + 1e-9),
+                "cycle {}: wheel {i} steering rate {s0} → {s1}: not winding down within its limit",
                 pair[1].cycle
             );
         }
@@ -306,18 +334,13 @@ impl Default for LiveOptions {
     }
 }
 
-/// Runs the base service in lockstep through the full frame path with the given command
-/// events (times from the moment the driver is ready); the summary's errors are against the
-/// simulator's truth, relative to the shaped reference.
-pub fn run_live(
-    opts: &LiveOptions,
-    commands: &[rollbase_control::ports::CommandEvent],
-) -> RunOutcome {
+/// The live core (not armed yet), the simulator and the virtual bus of `opts`.
+pub fn build_live(opts: &LiveOptions) -> (CycleCore, Simulator, VirtualLockstepBus) {
     let mut platform = Platform::justin();
     platform.protocol = opts.profile;
     let rt = opts.runtime.clone();
-    let mut core = CycleCore::new_live(platform.clone(), rt).expect("valid");
-    let mut sim = Simulator::with_config(
+    let core = CycleCore::new_live(platform.clone(), rt).expect("valid");
+    let sim = Simulator::with_config(
         &platform,
         SimConfig {
             plant: opts.plant.clone(),
@@ -328,7 +351,19 @@ pub fn run_live(
         },
     )
     .expect("valid simulator");
-    let mut bus = VirtualLockstepBus::new(FaultModel::none(), opts.seed ^ 0x5EED);
+    let bus = VirtualLockstepBus::new(FaultModel::none(), opts.seed ^ 0x5EED);
+    (core, sim, bus)
+}
+
+/// Runs the base service in lockstep through the full frame path with the given command
+/// events (times from the moment the driver is ready); the summary's errors are against the
+/// simulator's truth, relative to the shaped reference.
+pub fn run_live(
+    opts: &LiveOptions,
+    commands: &[rollbase_control::ports::CommandEvent],
+) -> RunOutcome {
+    let (mut core, mut sim, mut bus) = build_live(opts);
+    let platform = core.platform().clone();
     let max_cycles = (opts.max_seconds * platform.cycle_hz) as u64;
     let mut records = Vec::with_capacity(max_cycles as usize);
     let mut summary = RunSummary::new("live");
@@ -351,6 +386,7 @@ pub fn run_live(
         final_drive_states: Vec::new(),
         after_end: Vec::new(),
         final_state: Some(*core.base_state()),
+        timing: None,
     }
 }
 
@@ -367,17 +403,19 @@ pub fn twist_at(t: f64, vx: f64, vy: f64, omega: f64) -> rollbase_control::ports
 }
 
 /// Asserts that every command sent on every cycle keeps every actuator within its speed and
-/// acceleration limit ([`rollbase_control::limits::check_command`]).
+/// acceleration limit ([`rollbase_control::limits::check_command`]): every consecutive pair
+/// of commands, in every mode and across every hand-over between modes (align, track, halt,
+/// hold, decelerate, disable), fault stops included; no mode is exempt (issue 23).
 pub fn assert_commands_within_limits(out: &RunOutcome) {
     let p = &out.platform;
     for w in out.records.windows(2) {
         if let Some(v) =
             rollbase_control::limits::check_command(&p.limits, &w[0].command, &w[1].command, p.dt())
         {
-            // Fault stops hold the steering at once (documented); everything else is bound.
-            if w[1].mode != "decelerate" {
-                panic!("cycle {} ({}): {v}", w[1].cycle, w[1].mode);
-            }
+            panic!(
+                "cycle {} ({} after {}): {v}",
+                w[1].cycle, w[1].mode, w[0].mode
+            );
         }
     }
 }

@@ -185,7 +185,8 @@ fn a_drive_fault_is_reported_by_emcy_naming_the_device_and_stops_the_platform() 
     let text = fault.reason.unwrap().to_string();
     assert!(text.contains("wheel 2 steering drive (node 4)"), "{text}");
     assert!(text.contains("0x2310"), "{text}");
-    // Controlled stop within the wheel acceleration limit, steering held, latched.
+    // Controlled stop within the wheel acceleration limit, the steering winding down within
+    // its own, latched.
     assert_controlled_stop_from(&out, fault.cycle);
     assert_eq!(out.summary.final_state, "fault");
 }

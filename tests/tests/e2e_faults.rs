@@ -35,7 +35,8 @@ fn silent_module_faults_within_three_cycles_of_staleness_and_stays_stopped() {
         }
         r => panic!("unexpected reason {r:?}"),
     }
-    // Controlled stop: decelerating within the limit, steering held, then latched.
+    // Controlled stop: decelerating within the limit, the steering winding down within its
+    // own, then latched.
     assert_controlled_stop_from(&out, fault.cycle);
     // The module came back (feedback fresh again) but the platform stays stopped.
     let last = out.records.last().expect("records");

@@ -11,8 +11,9 @@ use rollbase_control::runtime::{
 use rollbase_control::scenario::Scenario;
 use rollbase_control::timescale::Timing;
 use rollbase_control::trajectory::{QuinticSpline, Trajectory, WaypointSpec};
-use rollbase_control::{Platform, ZVec};
+use rollbase_control::Platform;
 use rollbase_driver::fault::FaultModel;
+use rollbase_tests::flow::{icr_sweep, pivot, wp, z};
 use rollbase_tests::{assert_tracking_bounds, steering_chatter, steering_turn_while_slow};
 use rollbase_vcan_sim::{InitialState, SimConfig, Simulator};
 
@@ -66,21 +67,6 @@ fn run(waypoints: &[WaypointSpec], seed: u64) -> Outcome {
     }
 }
 
-fn z(x: f64, y: f64, th: f64, legs: [f64; 4]) -> ZVec {
-    let mut z = ZVec::zeros();
-    z[0] = x;
-    z[1] = y;
-    z[2] = th;
-    for i in 0..4 {
-        z[3 + i] = legs[i];
-    }
-    z
-}
-
-fn wp(t: f64, z: ZVec) -> WaypointSpec {
-    WaypointSpec { t: Some(t), z }
-}
-
 /// Prints the run's figures (for the record of what was measured) and asserts the issue's
 /// bounds: the run ends in Stopped; errors against the truth below 5 mm, 0.5° and 2 mm
 /// (legs); every command within its speed and acceleration limits on every cycle; and the
@@ -126,54 +112,6 @@ fn chatter(o: &Outcome, wheel: usize) -> usize {
 /// than 1 cm/s during tracking ([`steering_turn_while_slow`]; a flip would be about π).
 fn turn_while_slow(o: &Outcome, wheel: usize) -> f64 {
     steering_turn_while_slow(&o.records, o.platform.wheel_radius, wheel)
-}
-
-/// The platform turns by `turn` rad about wheel `k`'s contact point in `secs` (waypoints
-/// every `turn`/8, which the spline interpolates to within about 2 cm/s of contact speed).
-fn pivot(k: usize, turn: f64, secs: f64) -> Vec<WaypointSpec> {
-    let p = Platform::justin();
-    let (l, a) = (p.wheels[k].lambda_nominal, p.wheels[k].alpha);
-    (0..=8)
-        .map(|q| {
-            let th = turn * q as f64 / 8.0;
-            // P = (x, y) + R(θ) λ e_α stays where it starts.
-            let (px, py) = (l * a.cos(), l * a.sin());
-            let (wx, wy) = (l * (th + a).cos(), l * (th + a).sin());
-            wp(secs * q as f64 / 8.0, z(px - wx, py - wy, th, [l; 4]))
-        })
-        .collect()
-}
-
-/// The body turns at `omega` while its ICR moves in the body frame along the normal of
-/// wheel `k`'s leg, through the wheel's contact point (from `span` m before it to `span` m
-/// after it) in `secs`; sampled into waypoints every 0.25 s.
-fn icr_sweep(k: usize, omega: f64, span: f64, secs: f64) -> Vec<WaypointSpec> {
-    let p = Platform::justin();
-    let (l, a) = (p.wheels[k].lambda_nominal, p.wheels[k].alpha);
-    let wheel = [l * a.cos(), l * a.sin()];
-    let d = [-a.sin(), a.cos()];
-    let dt = 0.001;
-    let steps = (secs / dt).round() as usize;
-    let mut pose = rollbase_control::types::Pose::default();
-    let mut out = vec![wp(0.0, z(0.0, 0.0, 0.0, [l; 4]))];
-    for q in 0..steps {
-        let s = span * (2.0 * (q as f64 + 0.5) / steps as f64 - 1.0);
-        let icr = [wheel[0] + d[0] * s, wheel[1] + d[1] * s];
-        // v = −ω × p: the ICR's own velocity is zero.
-        let tw = rollbase_control::types::Twist {
-            vx: omega * icr[1],
-            vy: -omega * icr[0],
-            omega,
-        };
-        pose = rollbase_control::model::se2_integrate(pose, &tw, dt);
-        if (q + 1) % 250 == 0 || q + 1 == steps {
-            out.push(wp(
-                (q + 1) as f64 * dt,
-                z(pose.x, pose.y, pose.theta, [l; 4]),
-            ));
-        }
-    }
-    out
 }
 
 #[test]

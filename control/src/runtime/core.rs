@@ -21,7 +21,7 @@ use crate::record::{AvoidanceRecord, CycleRecord, FrameRecord, MAX_RECORDED_COMM
 use crate::shaper::Shaper;
 use crate::supervisor::FaultReason;
 use crate::supervisor::{
-    command_at_rest, halt_command, stop_command, Mode, Supervisor, SupervisorInput, SupervisorState,
+    command_at_rest, halt_command, Mode, Supervisor, SupervisorInput, SupervisorState,
 };
 use crate::trajectory::Trajectory;
 use crate::types::{Command, Measurement, ReferenceSample, Twist, MAX_WHEELS};
@@ -277,6 +277,19 @@ pub struct CycleCore {
 /// Contact speed (m/s) from which the DFL takes over from the kinematic controller when
 /// following live commands; it hands back below [`crate::dfl::EPSILON`] (hysteresis).
 pub const DFL_ENTRY_SPEED: f64 = 2.0 * crate::dfl::EPSILON;
+
+/// A trajectory run whose reference has ended is done once the platform rests within this
+/// distance (m) of the reference's end (by the estimate; the tracking controllers' last
+/// millimetres converge with a time constant of about K_D/K_P = 1.5 s)…
+pub const SETTLED_POSITION: f64 = 0.002;
+/// …this heading (rad, 0.2°)…
+pub const SETTLED_HEADING: f64 = 0.003_490_658_503_988_659;
+/// …and every leg within this of its end extension (m), every wheel and steering drive
+/// slower than SETTLED_SPEED.
+pub const SETTLED_LEG: f64 = 0.001;
+/// Speed (rad/s) below which a drive has settled at the end of a trajectory (a wheel's
+/// 0.1 rad/s is 8.5 mm/s: the controllers' creep onto the goal).
+pub const SETTLED_SPEED: f64 = 0.1;
 
 impl CycleCore {
     /// Builds the core following a pre-planned trajectory; allocates everything it will
@@ -1289,9 +1302,23 @@ impl CycleCore {
                 sup_in.controller_singular =
                     (o.singular && self.controller_moved) || !command_finite(&o.command);
                 // A controller that finished before the reference's end is at an interior
-                // rest of the reference; the run ends at the end.
+                // rest of the reference; the run ends at the end: when the controller
+                // finishes, or when the platform has settled on the goal (every drive slower
+                // than SETTLED_SPEED — what is left is the controller's creep onto the last
+                // millimetres, which the stop then ends — and the estimate within SETTLED_*
+                // of the reference's end), or at the latest 2 s after the end.
+                let settled = t_ref + dt >= duration
+                    && (0..self.n).all(|i| {
+                        let w = &meas.wheels[i];
+                        w.wheel_speed.abs() <= SETTLED_SPEED
+                            && w.steer_rate.abs() <= SETTLED_SPEED
+                            && (w.leg - reference.z[3 + i]).abs() <= SETTLED_LEG
+                    })
+                    && (reference.z[0] - odo.pose.x).hypot(reference.z[1] - odo.pose.y)
+                        <= SETTLED_POSITION
+                    && crate::angle::diff(reference.z[2], odo.pose.theta).abs() <= SETTLED_HEADING;
                 sup_in.trajectory_done =
-                    (o.finished && t_ref + dt >= duration) || t_ref >= duration + 2.0;
+                    (o.finished && t_ref + dt >= duration) || settled || t_ref >= duration + 2.0;
                 o.command
             }
             Source::Live(l) => {
@@ -1411,6 +1438,14 @@ impl CycleCore {
         let guard =
             |c: Command, last: &Command| guard_command(&self.platform.limits, last, &c, dt).0;
         let (cmd, enable, brake, mode_name) = match mode {
+            // Drives are disabled only once every command is at zero: a steering rate still
+            // winding down (a fault at rest) ramps out within its limit first.
+            Mode::Disabled if self.last_cmd != Command::zero(self.n) => (
+                halt_command(&self.platform, &self.last_cmd, dt),
+                true,
+                false,
+                "decelerate",
+            ),
             Mode::Disabled => (Command::zero(self.n), false, false, "disabled"),
             Mode::Align => {
                 let (align_cmd, _) = alignment_command(&self.platform, meas, nominal);
@@ -1432,7 +1467,7 @@ impl CycleCore {
                     (guard(lead, &self.last_cmd), true, false, "track")
                 } else {
                     (
-                        stop_command(&self.platform, &self.last_cmd, dt),
+                        halt_command(&self.platform, &self.last_cmd, dt),
                         true,
                         false,
                         "decelerate",
@@ -1440,12 +1475,18 @@ impl CycleCore {
                 }
             }
             Mode::Decelerate => (
-                stop_command(&self.platform, &self.last_cmd, dt),
+                halt_command(&self.platform, &self.last_cmd, dt),
                 true,
                 false,
                 "decelerate",
             ),
-            Mode::Hold => (Command::zero(self.n), true, true, "hold"),
+            // At rest: whatever steering is still in motion winds down within its limit.
+            Mode::Hold => (
+                halt_command(&self.platform, &self.last_cmd, dt),
+                true,
+                true,
+                "hold",
+            ),
         };
         let at_rest_now = command_at_rest(&cmd, self.sup.config().rest_speed);
         if last_cycle && at_rest_now {

@@ -21,8 +21,10 @@
 //! - the protocol's bus load from `rollbase_driver::busload` beside the least any protocol
 //!   carrying the same signals needs;
 //! - the base service's per-cycle work on a live command session (`tests/benches/live.rs`:
-//!   criterion medians, per-step percentiles from its `STEPTIME` lines, allocations), in a
-//!   section between `<!-- live:begin -->` and `<!-- live:end -->`.
+//!   criterion medians, per-step percentiles from its `STEPTIME` lines, allocations) and issue
+//!   23's benchmarks (`tests/benches/flow.rs`: the shaper with a new goal every cycle, the
+//!   planning of a 60-waypoint file), in a section between `<!-- live:begin -->` and
+//!   `<!-- live:end -->`.
 //!
 //! `perf-report --section live [--out …] [--criterion …] [--bench-log …]` rewrites only that
 //! section of an existing report (from the live benchmark's results), leaving every other
@@ -1094,15 +1096,19 @@ fn report(o: &Options) -> Result<(), String> {
     if let Some(dir) = o.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
     }
-    // The ROS 2 section is written by `ros2-perf` (it needs a network namespace): keep it.
+    // The ROS 2 sections are written by `ros2-perf` and from interop/test_ros2_fleet.py (they
+    // need network namespaces): keep them.
     if let Ok(old) = std::fs::read_to_string(&o.out) {
-        const BEGIN: &str = "<!-- ros2-perf:begin -->";
-        const END: &str = "<!-- ros2-perf:end -->";
-        if let (Some(b), Some(e)) = (old.find(BEGIN), old.find(END)) {
-            if e > b {
-                md.push('\n');
-                md.push_str(&old[b..e + END.len()]);
-                md.push('\n');
+        for (begin, end) in [
+            ("<!-- ros2-perf:begin -->", "<!-- ros2-perf:end -->"),
+            ("<!-- ros2-fleet:begin -->", "<!-- ros2-fleet:end -->"),
+        ] {
+            if let (Some(b), Some(e)) = (old.find(begin), old.find(end)) {
+                if e > b {
+                    md.push('\n');
+                    md.push_str(&old[b..e + end.len()]);
+                    md.push('\n');
+                }
             }
         }
     }
@@ -1206,6 +1212,8 @@ fn live_section(o: &Options) -> String {
         .ok();
     }
     writeln!(w).ok();
+    flow_rows(w, o);
+    writeln!(w).ok();
     writeln!(
         w,
         "The work is uneven: a new goal plans a transition (its grid is refined where a \
@@ -1277,6 +1285,61 @@ fn live_section(o: &Options) -> String {
     .ok();
     writeln!(w, "{LIVE_END}").ok();
     md
+}
+
+/// Issue 23's benchmarks (`tests/benches/flow.rs`): the shaper with a new goal every cycle
+/// and the planning of a 60-waypoint file, criterion medians and allocations.
+fn flow_rows(w: &mut String, o: &Options) {
+    let allocs = alloc_counts(&o.bench_logs);
+    writeln!(
+        w,
+        "`tests/benches/flow.rs` (issue 23): the shaper alone with a command that changes every \
+         cycle — a noisy joystick (the stick model of `rollbase_tests::flow`, σ = 0.05 m/s, 2σ \
+         rad/s on ω) sampled at 250 Hz, 30 s then the release to rest, one `Shaper::command` \
+         and one `Shaper::step` per cycle — and the planning of a 60-waypoint file \
+         (`flow::waypoint_tour`: about 20 m, legs moving now and then, every tenth waypoint \
+         untimed; spline and `ScaledTrajectory::plan` with the default time scaling), done \
+         once before a trajectory run starts (it allocates; the cycle does not)."
+    )
+    .ok();
+    writeln!(w).ok();
+    writeln!(
+        w,
+        "| benchmark | median | 95 % CI | allocations |\n|---|---|---|---|"
+    )
+    .ok();
+    for (id, what, unit) in [
+        (
+            "flow/shaper_joystick_every_cycle",
+            "shaper, a new goal every cycle (per cycle)",
+            1e3,
+        ),
+        (
+            "flow/plan_60_waypoints",
+            "planning a 60-waypoint file (once per run)",
+            1e6,
+        ),
+    ] {
+        // The plan is built once before a run and allocates by design: not counted.
+        let a = allocs
+            .iter()
+            .find(|a| a.0 == id)
+            .map_or("— (built once, before the run)".to_string(), |a| {
+                format!("{} in {} steps", a.1, a.2)
+            });
+        let u = if unit == 1e3 { "µs" } else { "ms" };
+        match criterion_median(&o.criterion, id) {
+            Some(e) => writeln!(
+                w,
+                "| {what} (`{id}`) | {:.2} {u} | {:.2}–{:.2} {u} | {a} |",
+                e.median_ns / unit,
+                e.lo_ns / unit,
+                e.hi_ns / unit,
+            ),
+            None => writeln!(w, "| {what} (`{id}`) | not measured | | {a} |"),
+        }
+        .ok();
+    }
 }
 
 /// `--section live`: the live section of the existing report replaced (or inserted before

@@ -809,25 +809,13 @@ fn load_run(b: &Build, kind: LoadKind, secs: u64) -> Result<Row, String> {
         std::thread::sleep(Duration::from_millis(50));
     }
     let ros = if kind == LoadKind::Ros2 {
+        use rollbase::ros2::dds::{qos, Dds};
         use rollbase::ros2::msg::Twist;
-        use rollbase::ros2::node::publisher;
-        use ros2_client::dds::rustdds::DomainParticipantBuilder;
-        use ros2_client::dds::Context;
-        use ros2_client::{NodeName, NodeOptions};
-        let ctx = Context::from_domain_participant(
-            DomainParticipantBuilder::new(LOAD_DOMAIN)
-                .build()
-                .map_err(|e| format!("DDS participant: {e:?}"))?,
-        )
-        .map_err(|e| format!("ROS 2 context: {e:?}"))?;
-        let mut peer = ctx
-            .new_node(
-                NodeName::new("/", "reliability_live").map_err(|e| format!("{e:?}"))?,
-                NodeOptions::new().enable_rosout(false),
-            )
-            .map_err(|e| format!("peer node: {e:?}"))?;
-        let pb = publisher::<Twist>(&mut peer, "/cmd_vel").map_err(|e| e.to_string())?;
-        Some((ctx, peer, pb))
+        let peer = Dds::new(LOAD_DOMAIN, &[]).map_err(|e| format!("DDS participant: {e}"))?;
+        let pb = peer
+            .writer::<Twist>("/cmd_vel", qos::ros_default())
+            .map_err(|e| e.to_string())?;
+        Some((peer, pb))
     } else {
         None
     };
@@ -839,11 +827,11 @@ fn load_run(b: &Build, kind: LoadKind, secs: u64) -> Result<Row, String> {
         if t % 5.0 < 3.0 {
             let vx = if (t / 5.0) as u64 % 2 == 0 { 0.3 } else { -0.3 };
             match &ros {
-                Some((_, _, pb)) => {
+                Some((_, pb)) => {
                     let mut tw = rollbase::ros2::msg::Twist::default();
                     tw.linear.x = vx;
                     tw.angular.z = 0.2;
-                    let _ = pb.publish(tw);
+                    let _ = pb.write(tw, None);
                 }
                 None => {
                     let _ = writeln!(stdin, "{{\"vx\": {vx}, \"vy\": 0.0, \"omega\": 0.2}}");

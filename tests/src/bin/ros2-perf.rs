@@ -30,8 +30,8 @@
 //! process from /proc/PID/stat over the measured interval (after a warm-up), its peak resident
 //! memory (VmHWM) and threads.
 
+use rollbase::ros2::dds::{qos, Dds};
 use rollbase::ros2::msg::{JointState, Odometry, Twist};
-use rollbase::ros2::node::{publisher, subscription};
 use rollbase::ros2::{spawn_node, Ros2Options};
 use rollbase_control::ports::{BaseState, CommandEvent, CommandKind};
 use rollbase_control::record::CycleRecord;
@@ -44,9 +44,6 @@ use rollbase_driver::bus::{BusClock, BusError, CanBus, VirtualBus, VirtualBusCon
 use rollbase_driver::frame::{CanFrame, TimestampedFrame};
 use rollbase_driver::protocol::{classify, MessageKind};
 use rollbase_vcan_sim::{SimConfig, Simulator};
-use ros2_client::dds::rustdds::DomainParticipantBuilder;
-use ros2_client::dds::Context;
-use ros2_client::{NodeName, NodeOptions};
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -309,19 +306,10 @@ fn latency(n: usize) -> Result<Latency, String> {
     });
 
     // The publisher: another participant in this process.
-    let ctx = Context::from_domain_participant(
-        DomainParticipantBuilder::new(0)
-            .build()
-            .map_err(|e| format!("DDS participant: {e:?}"))?,
-    )
-    .map_err(|e| format!("ROS 2 context: {e:?}"))?;
-    let mut peer = ctx
-        .new_node(
-            NodeName::new("/", "ros2_perf").map_err(|e| format!("{e:?}"))?,
-            NodeOptions::new().enable_rosout(false),
-        )
-        .map_err(|e| format!("peer node: {e:?}"))?;
-    let twist_pub = publisher::<Twist>(&mut peer, "/cmd_vel").map_err(|e| e.to_string())?;
+    let peer = Dds::new(0, &[]).map_err(|e| format!("DDS participant: {e}"))?;
+    let twist_pub = peer
+        .writer::<Twist>("/cmd_vel", qos::ros_default())
+        .map_err(|e| e.to_string())?;
     // Wait for the platform to track and for the subscription to match: publish a tag-0
     // command until one arrives.
     let t0 = Instant::now();
@@ -332,7 +320,7 @@ fn latency(n: usize) -> Result<Latency, String> {
         }
         let mut t = Twist::default();
         t.linear.x = tag_speed(0);
-        let _ = twist_pub.publish(t);
+        let _ = twist_pub.write(t, None);
         std::thread::sleep(Duration::from_millis(50));
         if arrivals.lock().map(|a| !a.is_empty()).unwrap_or(false) {
             break;
@@ -347,7 +335,7 @@ fn latency(n: usize) -> Result<Latency, String> {
         let mut t = Twist::default();
         t.linear.x = tag_speed(k);
         let at = Instant::now();
-        if twist_pub.publish(t).is_ok() {
+        if twist_pub.write(t, None).is_ok() {
             published.push((k % 1000, at));
         }
         next += period;
@@ -548,23 +536,17 @@ fn cost(bins: &Path, ros2: bool, seconds: f64) -> Result<Cost, String> {
     // Commands at 20 Hz: a slow circle (0.2 m/s, 0.1 rad/s), from ROS 2 or stdin.
     let mut ros = None;
     if ros2 {
-        let ctx = Context::from_domain_participant(
-            DomainParticipantBuilder::new(0)
-                .build()
-                .map_err(|e| format!("DDS participant: {e:?}"))?,
-        )
-        .map_err(|e| format!("ROS 2 context: {e:?}"))?;
-        let mut peer = ctx
-            .new_node(
-                NodeName::new("/", "ros2_perf_cost").map_err(|e| format!("{e:?}"))?,
-                NodeOptions::new().enable_rosout(false),
-            )
-            .map_err(|e| format!("peer node: {e:?}"))?;
-        let p = publisher::<Twist>(&mut peer, "/cmd_vel").map_err(|e| e.to_string())?;
-        let odom = subscription::<Odometry>(&mut peer, "/odom").map_err(|e| e.to_string())?;
-        let joints =
-            subscription::<JointState>(&mut peer, "/joint_states").map_err(|e| e.to_string())?;
-        ros = Some((ctx, peer, p, odom, joints));
+        let peer = Dds::new(0, &[]).map_err(|e| format!("DDS participant: {e}"))?;
+        let p = peer
+            .writer::<Twist>("/cmd_vel", qos::ros_default())
+            .map_err(|e| e.to_string())?;
+        let odom = peer
+            .reader::<Odometry>("/odom", qos::ros_default())
+            .map_err(|e| e.to_string())?;
+        let joints = peer
+            .reader::<JointState>("/joint_states", qos::ros_default())
+            .map_err(|e| e.to_string())?;
+        ros = Some((peer, p, odom, joints));
     }
     let warmup = Duration::from_secs(5);
     let begin = Instant::now();
@@ -575,8 +557,8 @@ fn cost(bins: &Path, ros2: bool, seconds: f64) -> Result<Cost, String> {
         let mut tw = Twist::default();
         tw.linear.x = 0.2;
         tw.angular.z = 0.1;
-        if let Some((_, _, p, odom, joints)) = &ros {
-            let _ = p.publish(tw);
+        if let Some((_, p, odom, joints)) = &ros {
+            let _ = p.write(tw, None);
             while let Ok(Some(_)) = odom.take() {
                 if t0.is_some() {
                     received.0 += 1;

@@ -1,0 +1,396 @@
+//! Issue 23, "Motion that flows": the "Must show" lockstep tests through the full frame path
+//! (encode → virtual bus → simulated modules and plant with the simulator's defaults: noise,
+//! motor lag, encoder latency → decode), on both wire profiles (native and CiA 402, the
+//! latter's frames serialized on a 1 Mbit/s bus).
+//!
+//! Every run is held to the tracking bounds of every closed-loop acceptance test
+//! ([`assert_tracking_bounds`]: ends Stopped, 5 mm, 0.5°, 2 mm against the simulator's truth
+//! relative to the reference the controller followed) and to the limits on every
+//! consecutive pair of commands in every mode ([`assert_commands_within_limits`], no mode
+//! exempt). On top, each test asserts what it names, with the measures of
+//! `rollbase_tests::flow` (defined and unit-tested there):
+//!
+//! - **joystick sessions** (20 s, σ = 0, 0.02, 0.05 m/s): the truth travels ≥ 90 % of the
+//!   noise-free command's path, *defined as the ideal execution of the σ = 0 stream of the
+//!   same seed* ([`ideal_path_length`]: every twist held exactly until the next message) —
+//!   what the user asked for, independent of how any run went; at most one steering reversal
+//!   per wheel per 2 s of session; at most 10 % of the cycles aligning with the base
+//!   standing;
+//! - **Nav2-like sessions** (a pure-pursuit follower at 20 Hz on two random curvy paths, in
+//!   closed loop on the run's odometry, diff-drive and holonomic twists): the same measures,
+//!   the reference path being the follower's ideal open-loop execution
+//!   ([`nav2_open_loop`]), the session from its first command to the end of its stream;
+//! - **waypoint classes** (several random instances each): every run ends Stopped; the
+//!   executed duration (first Tracking to first Stopped cycle, and the plan's own) is at
+//!   most 1.25 × (time-optimal timing + planned dwells) — both printed; ṡ < 0.05 only
+//!   inside the planned dwells;
+//! - **`--avoidance on`**: the seed-001 experiment and the pivot and sweep classes within the
+//!   bounds against the avoided reference.
+//!
+//! Each test prints one `FLOW` line per run with every figure (`cargo test -p rollbase-tests
+//! --test e2e_flow -- --nocapture | grep FLOW`), then fails listing everything it missed.
+
+use rollbase_control::Protocol;
+use rollbase_tests::flow::*;
+use rollbase_tests::{
+    assert_commands_within_limits, assert_tracking_bounds, run, run_live, LiveOptions, RunOptions,
+    RunOutcome,
+};
+
+/// Length of a joystick session (s).
+const JOYSTICK_S: f64 = 20.0;
+/// Seed of the joystick sessions (the same stick at every σ).
+const JOYSTICK_SEED: u64 = 23;
+/// Seeds of the Nav2-like sessions' paths.
+const NAV2_PATHS: [u64; 2] = [1, 2];
+
+fn profile_name(p: Protocol) -> &'static str {
+    match p {
+        Protocol::Native => "native",
+        Protocol::Cia402 => "cia402",
+    }
+}
+
+/// The tracking bounds and the limit check of `out`, as failure messages.
+fn common_failures(out: &RunOutcome, what: &str) -> Vec<String> {
+    let mut f: Vec<String> = Vec::new();
+    f.extend(failure_of(|| assert_tracking_bounds(&out.summary, what)));
+    f.extend(failure_of(|| assert_commands_within_limits(out)));
+    f
+}
+
+/// Fails listing every run's failures (`(run, failures)`), if any.
+fn assert_no_failures(what: &str, failures: Vec<(String, Vec<String>)>) {
+    let failed: Vec<String> = failures
+        .into_iter()
+        .filter(|(_, f)| !f.is_empty())
+        .map(|(run, f)| format!("\n  {run}: {}", f.join("; ")))
+        .collect();
+    assert!(failed.is_empty(), "{what}:{}", failed.concat());
+}
+
+fn live_options(profile: Protocol, max_seconds: f64) -> LiveOptions {
+    LiveOptions {
+        profile,
+        max_seconds,
+        ..LiveOptions::default()
+    }
+}
+
+/// A joystick session at noise `sigma` on `profile`: the issue's measures and bounds.
+fn joystick(profile: Protocol, sigma: f64) {
+    let name = format!("joystick σ = {sigma} m/s ({})", profile_name(profile));
+    let timeout = rollbase_control::Platform::justin().service.command_timeout;
+    let reference = ideal_path_length(&joystick_session(JOYSTICK_SEED, JOYSTICK_S, 0.0), timeout);
+    let cmds = joystick_session(JOYSTICK_SEED, JOYSTICK_S, sigma);
+    let out = run_live(&live_options(profile, JOYSTICK_S + RELEASE_S + 15.0), &cmds);
+    let fig = LiveFigures::of(&out, JOYSTICK_S, reference);
+    println!("FLOW {name}: {fig}");
+    let mut f = fig.misses();
+    f.extend(common_failures(&out, &name));
+    assert_no_failures(&name, vec![(name.clone(), f)]);
+}
+
+#[test]
+fn joystick_without_noise_moves_the_base_native() {
+    joystick(Protocol::Native, 0.0);
+}
+
+#[test]
+fn joystick_without_noise_moves_the_base_cia402() {
+    joystick(Protocol::Cia402, 0.0);
+}
+
+#[test]
+fn joystick_with_noise_0_02_moves_the_base_native() {
+    joystick(Protocol::Native, 0.02);
+}
+
+#[test]
+fn joystick_with_noise_0_02_moves_the_base_cia402() {
+    joystick(Protocol::Cia402, 0.02);
+}
+
+#[test]
+fn joystick_with_noise_0_05_moves_the_base_native() {
+    joystick(Protocol::Native, 0.05);
+}
+
+#[test]
+fn joystick_with_noise_0_05_moves_the_base_cia402() {
+    joystick(Protocol::Cia402, 0.05);
+}
+
+/// Nav2-like sessions of `style` on `profile` along each of [`NAV2_PATHS`].
+fn nav2(profile: Protocol, style: FollowerStyle) {
+    let mut failures = Vec::new();
+    for seed in NAV2_PATHS {
+        let name = format!("Nav2 {style:?}, path {seed} ({})", profile_name(profile));
+        let path = curvy_path(seed);
+        let ideal = nav2_open_loop(&path, style);
+        let timeout = rollbase_control::Platform::justin().service.command_timeout;
+        let reference = ideal_path_length(&ideal.commands, timeout);
+        let opts = live_options(profile, nav2_deadline(&path) + RELEASE_S + 15.0);
+        let (out, session) = run_nav2(&opts, &path, style);
+        let fig = LiveFigures::of(&out, session.session_s, reference);
+        println!(
+            "FLOW {name}: path {:.2} m, goal reached at {} (ideal {}), {fig}",
+            path.length(),
+            session
+                .reached_at
+                .map_or("never".into(), |t| format!("{t:.2} s")),
+            ideal
+                .reached_at
+                .map_or("never".into(), |t| format!("{t:.2} s")),
+        );
+        let mut f = fig.misses();
+        if session.reached_at.is_none() {
+            f.push(format!(
+                "the follower did not reach its goal within {:.0} s",
+                nav2_deadline(&path)
+            ));
+        }
+        f.extend(common_failures(&out, &name));
+        failures.push((name, f));
+    }
+    assert_no_failures(&format!("Nav2 {style:?}"), failures);
+}
+
+#[test]
+fn nav2_diff_drive_follower_moves_the_base_native() {
+    nav2(Protocol::Native, FollowerStyle::DiffDrive);
+}
+
+#[test]
+fn nav2_diff_drive_follower_moves_the_base_cia402() {
+    nav2(Protocol::Cia402, FollowerStyle::DiffDrive);
+}
+
+#[test]
+fn nav2_holonomic_follower_moves_the_base_native() {
+    nav2(Protocol::Native, FollowerStyle::Holonomic);
+}
+
+#[test]
+fn nav2_holonomic_follower_moves_the_base_cia402() {
+    nav2(Protocol::Cia402, FollowerStyle::Holonomic);
+}
+
+/// Instances of `class` (seeds) on `profile`: each ends Stopped within the bounds, within
+/// 1.25 × (optimal + dwells), its clock below 0.05 only inside the planned dwells.
+fn waypoints(profile: Protocol, class: WaypointClass, seeds: std::ops::Range<u64>) {
+    let mut failures = Vec::new();
+    for seed in seeds {
+        let name = format!(
+            "{}, instance {seed} ({})",
+            class.name(),
+            profile_name(profile)
+        );
+        let specs = waypoint_class(class, seed);
+        let opts = WaypointRunOptions {
+            profile,
+            avoidance: None,
+            seed: 1 + seed,
+        };
+        let run = match run_waypoints(&specs, &opts) {
+            Ok(r) => r,
+            Err(e) => {
+                println!("FLOW {name}: refused: {e}");
+                failures.push((name, vec![format!("refused: {e}")]));
+                continue;
+            }
+        };
+        let fig = WaypointFigures::of(&run);
+        println!("FLOW {name}: {fig}");
+        let mut f = fig.misses();
+        f.extend(common_failures(&run.out, &name));
+        failures.push((name, f));
+    }
+    assert_no_failures(class.name(), failures);
+}
+
+#[test]
+fn stop_and_go_corners_finish_native() {
+    waypoints(Protocol::Native, WaypointClass::StopAndGoCorner, 0..3);
+}
+
+#[test]
+fn stop_and_go_corners_finish_cia402() {
+    waypoints(Protocol::Cia402, WaypointClass::StopAndGoCorner, 0..3);
+}
+
+#[test]
+fn circles_at_constant_heading_end_native() {
+    waypoints(Protocol::Native, WaypointClass::CircleConstantHeading, 0..2);
+}
+
+#[test]
+fn circles_at_constant_heading_end_cia402() {
+    waypoints(Protocol::Cia402, WaypointClass::CircleConstantHeading, 0..2);
+}
+
+#[test]
+fn circles_facing_the_centre_end_native() {
+    waypoints(Protocol::Native, WaypointClass::CircleFacingCentre, 0..2);
+}
+
+#[test]
+fn circles_facing_the_centre_end_cia402() {
+    waypoints(Protocol::Cia402, WaypointClass::CircleFacingCentre, 0..2);
+}
+
+#[test]
+fn spins_in_place_with_the_legs_moving_end_native() {
+    waypoints(Protocol::Native, WaypointClass::SpinWithLegs, 0..2);
+}
+
+#[test]
+fn spins_in_place_with_the_legs_moving_end_cia402() {
+    waypoints(Protocol::Cia402, WaypointClass::SpinWithLegs, 0..2);
+}
+
+#[test]
+fn pivots_about_each_wheel_without_long_pauses_native() {
+    waypoints(Protocol::Native, WaypointClass::Pivot, 0..4);
+}
+
+#[test]
+fn pivots_about_each_wheel_without_long_pauses_cia402() {
+    waypoints(Protocol::Cia402, WaypointClass::Pivot, 0..4);
+}
+
+#[test]
+fn icr_sweeps_across_each_wheel_without_long_pauses_native() {
+    waypoints(Protocol::Native, WaypointClass::IcrSweep, 0..4);
+}
+
+#[test]
+fn icr_sweeps_across_each_wheel_without_long_pauses_cia402() {
+    waypoints(Protocol::Cia402, WaypointClass::IcrSweep, 0..4);
+}
+
+#[test]
+fn dense_waypoints_at_speed_end_native() {
+    waypoints(Protocol::Native, WaypointClass::DenseAtSpeed, 0..2);
+}
+
+#[test]
+fn dense_waypoints_at_speed_end_cia402() {
+    waypoints(Protocol::Cia402, WaypointClass::DenseAtSpeed, 0..2);
+}
+
+#[test]
+fn untimed_and_mixed_files_end_native() {
+    waypoints(Protocol::Native, WaypointClass::UntimedMixed, 0..3);
+}
+
+#[test]
+fn untimed_and_mixed_files_end_cia402() {
+    waypoints(Protocol::Cia402, WaypointClass::UntimedMixed, 0..3);
+}
+
+/// `--avoidance on` (legs free).
+fn avoidance_on() -> Option<rollbase_control::avoidance::AvoidanceConfig> {
+    rollbase_control::scenario::avoidance_mode("on").expect("a mode")
+}
+
+/// The seed-001 experiment (its controller and settings) with `--avoidance on`.
+fn seed001_avoidance_on(profile: Protocol) {
+    let name = format!("seed 001, avoidance on ({})", profile_name(profile));
+    let mut opts = RunOptions::new(rollbase_control::scenario::Scenario::Seed001);
+    opts.runtime.avoidance = avoidance_on();
+    if profile == Protocol::Cia402 {
+        opts = opts.cia402();
+    }
+    let out = run(&opts);
+    let s = &out.summary;
+    println!(
+        "FLOW {name}: {}, errors {:.2} mm {:.3}° legs {:.2} mm against the avoided reference, avoidance active in {} cycles, limit violations: {}",
+        s.final_state,
+        s.max_position_error_m * 1e3,
+        s.max_heading_error_rad.to_degrees(),
+        s.max_leg_error_m * 1e3,
+        out.records.iter().filter(|r| r.avoidance.active).count(),
+        violations_text(&limit_violations(&out.records, &out.platform))
+    );
+    let mut f = common_failures(&out, &name);
+    if !out.records.iter().any(|r| r.avoidance.active) {
+        f.push("the avoidance never acted".into());
+    }
+    assert_no_failures(&name, vec![(name.clone(), f)]);
+}
+
+#[test]
+fn seed001_with_avoidance_on_tracks_the_avoided_reference_native() {
+    seed001_avoidance_on(Protocol::Native);
+}
+
+#[test]
+fn seed001_with_avoidance_on_tracks_the_avoided_reference_cia402() {
+    seed001_avoidance_on(Protocol::Cia402);
+}
+
+/// Instances of a pivot or sweep class with `--avoidance on`: each ends Stopped within the
+/// bounds against the avoided reference and within the limits.
+fn waypoints_avoidance_on(profile: Protocol, class: WaypointClass) {
+    let mut failures = Vec::new();
+    for seed in 0..4 {
+        let name = format!(
+            "{}, instance {seed}, avoidance on ({})",
+            class.name(),
+            profile_name(profile)
+        );
+        let specs = waypoint_class(class, seed);
+        let opts = WaypointRunOptions {
+            profile,
+            avoidance: avoidance_on(),
+            seed: 1 + seed,
+        };
+        let run = match run_waypoints(&specs, &opts) {
+            Ok(r) => r,
+            Err(e) => {
+                println!("FLOW {name}: refused: {e}");
+                failures.push((name, vec![format!("refused: {e}")]));
+                continue;
+            }
+        };
+        let out = &run.out;
+        let s = &out.summary;
+        let active = out.records.iter().filter(|r| r.avoidance.active).count();
+        println!(
+            "FLOW {name}: {}, executed {}, errors {:.2} mm {:.3}° legs {:.2} mm against the avoided reference, avoidance active in {active} cycles, limit violations: {}",
+            s.final_state,
+            executed_duration(&out.records).map_or("never".into(), |e| format!("{e:.2} s")),
+            s.max_position_error_m * 1e3,
+            s.max_heading_error_rad.to_degrees(),
+            s.max_leg_error_m * 1e3,
+            violations_text(&limit_violations(&out.records, &out.platform))
+        );
+        let mut f = common_failures(out, &name);
+        if active == 0 {
+            f.push("the avoidance never acted (the ICR never entered a field)".into());
+        }
+        failures.push((name, f));
+    }
+    assert_no_failures(&format!("{}, avoidance on", class.name()), failures);
+}
+
+#[test]
+fn pivots_with_avoidance_on_track_the_avoided_reference_native() {
+    waypoints_avoidance_on(Protocol::Native, WaypointClass::Pivot);
+}
+
+#[test]
+fn pivots_with_avoidance_on_track_the_avoided_reference_cia402() {
+    waypoints_avoidance_on(Protocol::Cia402, WaypointClass::Pivot);
+}
+
+#[test]
+fn icr_sweeps_with_avoidance_on_track_the_avoided_reference_native() {
+    waypoints_avoidance_on(Protocol::Native, WaypointClass::IcrSweep);
+}
+
+#[test]
+fn icr_sweeps_with_avoidance_on_track_the_avoided_reference_cia402() {
+    waypoints_avoidance_on(Protocol::Cia402, WaypointClass::IcrSweep);
+}
