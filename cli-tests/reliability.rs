@@ -277,6 +277,7 @@ fn stdin_from_dev_zero_neither_grows_memory_nor_prevents_a_controlled_stop() {
 #[test]
 fn a_stop_in_a_burst_of_motion_lines_acts_and_the_dropped_lines_are_counted_and_logged_sparingly() {
     let _s = serial();
+    let started = Instant::now();
     let mut p = live_demo(&[]);
     let mut stdin = p.take_stdin();
     // The review's burst: 200 000 motion lines, a stop, 200 000 more, in one write.
@@ -292,6 +293,7 @@ fn a_stop_in_a_burst_of_motion_lines_acts_and_the_dropped_lines_are_counted_and_
     }
     drop(stdin);
     let (status, out, err) = p.wait();
+    let run_s = started.elapsed().as_secs_f64();
     assert_eq!(status.code(), Some(0), "{err}");
     let v = summary(&out);
     println!("{v}");
@@ -306,12 +308,16 @@ fn a_stop_in_a_burst_of_motion_lines_acts_and_the_dropped_lines_are_counted_and_
         .as_u64()
         .expect("dropped_commands in the summary");
     assert!(dropped >= 1, "{v}");
-    // One warning a second at most, not one per dropped line.
+    // One warning a second at most, not one per dropped line (the burst is read for as long
+    // as the machine needs: a few seconds, more under load).
     let warnings = err
         .lines()
         .filter(|l| l.contains("command queue full"))
         .count();
-    assert!((1..=5).contains(&warnings), "{warnings} warnings:\n{err}");
+    assert!(
+        warnings >= 1 && warnings as f64 <= run_s.ceil() + 1.0,
+        "{warnings} warnings in a run of {run_s:.1} s:\n{err}"
+    );
     assert!(err.contains(&format!("{dropped} in all")), "{err}");
 }
 
