@@ -137,7 +137,7 @@
 //!   of the side used last, p is that side itself, so that goals computed from slightly
 //!   different contact points (the shaper's legs start from their measurement) stay exactly
 //!   on one line for that wheel. Any other change of p is a new goal the shaper plans like
-//!   any other (beyond its `far_angle` it stops, aligns and goes).
+//!   any other (sweeping round, or stopping, aligning and going when that is quicker).
 //! * **A deliberate pivot about a wheel** cannot both be executed and keep the ICR out of the
 //!   field. With the avoidance on, the avoidance wins: the platform turns about the point
 //!   d_start beyond the wheel, outward along its leg, at the commanded speed of the base, and

@@ -29,60 +29,89 @@
 //! speed is reduced (seed 004, Sect. 4.1: "The direction of the operational movement is kept
 //! identical, only the speed of execution is reduced"); no wheel is ever clamped alone.
 //!
-//! # Commands that change every message: the mean, and a deadband
+//! # Commands that change every message: a stream, its mean, and a deadband
 //!
 //! A joystick or a navigation stack sends a twist that differs in every message (hand
 //! tremor, sensor noise, a controller re-planning at 20 Hz). Followed literally, every
 //! message is a new direction for every wheel; near rest, where a small change of the
 //! twist is a large change of direction, the wheels would re-steer without end. So:
 //!
-//! * The command is first smoothed: a first-order low-pass with time constant
-//!   `command_smoothing` (100 ms), run every cycle on the command held since its last
-//!   message. Noise about a moving mean is followed as the mean; a step arrives as an
-//!   exponential (what the controller follows is the shaped reference, so this adds lag,
-//!   never tracking error). A command of exactly zero (a joystick let go, a navigation goal
-//!   reached), stops and timeouts bypass it: the platform stops without crawling the
-//!   exponential's tail.
-//! * The noise left in the smoothed command is estimated from the innovations (raw minus
-//!   smoothed, a running mean square over ~1 s, which for white noise of variance σ² on a
-//!   message period T is σ² and leaves σ²·T/(2 τ) in the smoothed command).
+//! * **A stream is interpolated.** Messages that arrive at least every 100 ms
+//!   (`STREAM_PERIOD`) are taken as samples of a continuous command: the held command moves
+//!   from where it was to each new message over one message period (first-order hold, one
+//!   period of lag: 50 ms at Nav2's 20 Hz, 20 ms at a 50 Hz joystick), so the goal moves on
+//!   a polygon rather than in steps. A slower or single command is taken as it comes.
+//! * **Smoothing that grows with the noise.** A first-order low-pass whose time constant is
+//!   `command_smoothing` (0.25 s) times the command's noise relative to 5 cm/s at the
+//!   fastest wheel (capped at 1): a clean stream — a navigation stack, a file — passes
+//!   without lag (in a closed loop around the base, lag is what makes a follower
+//!   oscillate), a noisy stick is followed as its mean. A command of exactly zero (a
+//!   joystick let go, a navigation goal reached), stops and timeouts bypass it: the
+//!   platform stops without crawling an exponential's tail.
+//! * The noise is estimated from the innovations (raw minus smoothed; a running median over
+//!   16 messages), and what is left of it in the smoothed command is σ²·T/(2τ) per axis for
+//!   white noise of variance σ² held for a message period T.
 //! * **Deadband**: when the smoothed command would move no wheel faster than `deadband`
 //!   (1 cm/s, half the speed below which the controllers hold a wheel's steering) plus
-//!   `noise_deadband` (3) standard deviations of that residual noise, the goal is rest: a
+//!   `noise_deadband` (2.5) standard deviations of that residual noise, the goal is rest: a
 //!   joystick let go, or a noisy command about zero, moves nothing and re-steers nothing.
-//!   The platform leaves the deadband at 1.5 times that speed (hysteresis).
+//!   The platform leaves the deadband at 1.5 times that speed (hysteresis). Changes of the
+//!   goal within the same noise band are not followed either.
 //!
-//! # Online generation (jerk-limited, a target that moves every cycle)
+//! # Tracking a stream
 //!
-//! The twist follows its goal with a discrete time-optimal tracker — Han's `fhan`, the
-//! discrete-time optimal synthesis for a double integrator, here for the twist as the
-//! "position" and its acceleration as the "velocity", the jerk as the control — along the
-//! current error e = q̇_g − q̇: with s the progress along ê = e/|e|,
+//! When the twist is within 2 cm/s (`TRACK_ERROR`, at the fastest wheel) of a goal that
+//! moves, it follows the goal continuously rather than planning a transition per message:
+//! the twist's acceleration is the goal's own rate plus the remaining difference over
+//! `TRACK_TIME` (50 ms), with the gain faded to zero as the difference shrinks into the
+//! noise band; the change of acceleration is within the jerk of the transitions
+//! (`accel_fraction`·a_max/`jerk_time`), the acceleration within the wheels' share, and the
+//! change of every rolling wheel's steering rate, ⟨u × u̇⟩/|u|², within its steering
+//! acceleration share in one cycle. Tracking gives way to a transition (after the
+//! acceleration has coasted back to zero within the same bounds, so every steering rate
+//! winds down within its acceleration) as soon as any of these would not hold: a wheel
+//! slower than the turning speed or at rest in the goal, a steering rate beyond
+//! min(φ̇_s, a_lat/|u|), a steering-rate step beyond the acceleration share, the base
+//! origin's direction turning beyond a_lat/|v|, or a difference beyond `TRACK_ERROR`.
+//! Without it, a stream that changes a little every message is a sequence of rest-to-rest
+//! ramps of the twist's acceleration: the reference pulses at the message rate, and the
+//! DFL's feedback on the lagging measured twist turns each pulse into a steering reversal.
 //!
-//! ```text
-//! x1 = −|e|,  x2 = q̈·ê,  u = fhan(x1, x2, J, Δt),  q̈⁺ = (x2 + Δt u) ê + decay(q̈ − x2 ê),  q̇⁺ = q̇ + Δt q̈
-//! ```
+//! # Transitions
 //!
-//! with |x2| ≤ A. The acceleration perpendicular to ê (left over when the goal turns)
-//! decays to zero at the jerk bound. So q̈ is continuous and q⃛ bounded — C² for the DFL —
-//! every cycle, whatever the goal did; a goal that stays put is reached exactly in finite
-//! time without overshoot or chattering (the property fhan is built for: in the discrete
-//! system x1⁺ = x1 + Δt x2, x2⁺ = x2 + Δt u the origin is reached in finite steps and held).
-//! This is the behaviour of Ruckig's or Reflexxes' online generation (a target updated every
-//! cycle, the state carried over), restricted to the velocity interface.
+//! Any other change of the goal is a **transition**: the twist moves along the straight
+//! line q̇(β) = q̇_0 + β (q̇_g − q̇_0), β from 0 to 1 on a rest-to-rest profile
+//! ([`crate::ramp::Ramp`]: the time-optimal profile under per-point caps, able to brake at
+//! any moment). Along the line every wheel's contact velocity u_i(β) = u_i(0) + β G_i Δ is
+//! a straight line too, so the caps are exact at the grid points (refined around each
+//! wheel's closest approach to its zero):
 //!
-//! A and J come from the wheels, per cycle, along ê (u_i the wheel's contact velocity, a_c
-//! = `accel_fraction`·r·ω̇_max, φ̇_s and φ̈_s the steering shares):
+//! * wheel acceleration: |G_i Δ| β̈ ≤ a_c (a_c = `accel_fraction`·r·ω̇_max, the legs' share
+//!   reserved while they move; `stop_accel_fraction` for a halt), the jerk within
+//!   a_c/`jerk_time`;
+//! * steering of a rolling wheel: its direction turns at φ̇ = β̇ |u × G_i Δ|/|u|² and
+//!   φ̈ ≈ β̈ |u × G_iΔ|/|u|² + 2 β̇² |u × G_iΔ| |⟨u, G_iΔ⟩|/|u|⁴: β̇ is capped so that φ̇ ≤
+//!   min(φ̇_s, `lateral_accel`/|u|) and the second term ≤ φ̈_s/2;
+//! * the direction of travel of the base origin within `lateral_accel`/|v| while faster
+//!   than 4 cm/s (the drives follow a turn with a few ms of lag; a wheel that far behind
+//!   rolls sideways by that lag times |u| φ̇).
 //!
-//! * wheel acceleration: |G_i ê| A ≤ a_c (|u̇| ≥ d|u|/dt: conservative), J = A/`jerk_time`;
-//! * steering of a rolling wheel: its direction turns at φ̇ = (u × G_i q̈)/|u|², so per unit
-//!   of acceleration along ê at L_i = |u × G_i ê|/|u|²: A ≤ φ̇_s/L_i and J ≤ φ̈_s/L_i. L_i is
-//!   taken where the straight line from u_i to the goal's contact velocity passes closest
-//!   to the wheel's zero velocity (|u × G_i ê| is constant along it), but not closer than
-//!   [`HOLD_SPEED`]: below that the wheel is not steered by its direction (next section);
-//! * the direction of travel of the base origin likewise at `direction_rate` while faster
-//!   than 4 cm/s, so the direction the base travels in turns slowly enough for the drives
-//!   (first-order lag τ ≈ 20 ms) to follow it.
+//! A line that passes a wheel's zero velocity closer than 1.1 mm/s (`CROSS_SPEED`)
+//! **crosses** it: the wheel's roll reverses there, its direction modulo π changes by at
+//! most ~11° within the disc where it turns rather than rolls, and it needs no steering.
+//! A line that passes a little farther turns that wheel by nearly 180° in a short stretch,
+//! crawled through within its steering rate. So, for each transition from a moving twist,
+//! the shaper compares the line's duration with **stopping, turning and going**: the stop
+//! (the line to rest), the turn of the slowest rolling wheel from its direction to the
+//! goal's on the nearer branch (rate- and acceleration-limited: 2√(δ/φ̈_s) or δ/φ̇_s +
+//! φ̇_s/φ̈_s) and the line from rest to the goal; it stops first only when that is quicker
+//! (and always when a rolling wheel would sweep by more than `far_angle`). A stop
+//! transition ends at rest, and the next one starts from there, with the wheels turned as
+//! the next section says.
+//!
+//! A goal that moves during a transition by more than a quarter of its span (at most
+//! 5 cm/s, at least the noise band) brakes the ramp within its caps, and the next
+//! transition starts from where it came to rest in β; smaller moves wait for its end.
 //!
 //! # Where a wheel does not roll
 //!
@@ -94,7 +123,7 @@
 //! of travel and its steering reference is steered, within the steering rate and
 //! acceleration shares, towards where it will roll next: the direction of its contact
 //! velocity in the goal (held when the goal leaves it at rest: a pivot about it, a stop).
-//! The steering generator is `fhan` again (angle and rate, the acceleration share as its
+//! The steering generator is Han's `fhan` (angle and rate, the acceleration share as its
 //! bound, the rate share as a clamp), averaged over `jerk_time` so that the steering
 //! acceleration builds up within the jerk the drives' lag compensation needs; the branch
 //! is the one nearest the wheel's angle, switched only when the other saves more than
@@ -182,6 +211,17 @@ const LEG_MIN_ROLL: f64 = 0.1;
 /// Change of the twist goal (m/s at any wheel) that brakes a running leg move; smaller
 /// changes wait for its end.
 const LEG_WAIT_SPEED: f64 = 0.02;
+/// Noise of the command (m/s at the fastest wheel, per message) at and above which it is
+/// smoothed with the whole `command_smoothing`.
+const FULL_SMOOTHING_NOISE: f64 = 0.05;
+/// Longest message period (s) of a command stream interpolated between its messages.
+const STREAM_PERIOD: f64 = 0.1;
+/// Largest difference (m/s at the fastest wheel) between the twist and its goal that the
+/// twist tracks continuously (module docs, "Tracking a stream"); larger ones are
+/// transitions.
+const TRACK_ERROR: f64 = 0.02;
+/// Time constant (s) of that tracking.
+const TRACK_TIME: f64 = 0.05;
 /// Messages over which the command's noise is estimated (a running median).
 const NOISE_WINDOW: usize = 16;
 /// Largest allowance (rad) for the noise of the direction a turning wheel aims for.
@@ -204,14 +244,21 @@ pub struct ShaperConfig {
     /// faster than [`HOLD_SPEED`] (what is left fades out once it rolls). Default 1.5°.
     pub align_tolerance: f64,
     /// Largest steering change (rad) of a rolling wheel driven through; beyond it the
-    /// platform stops, its wheels turn, and it rolls again. Default 60°.
+    /// platform always stops, its wheels turn, and it rolls again. Default 180°: whether to
+    /// sweep round or stop is otherwise chosen by time (module docs, "Transitions").
     pub far_angle: f64,
     /// Branch hysteresis (rad): a turning wheel changes the branch it aims for (roll
     /// forward at ψ or backward at ψ + π) only when the other saves more than this. Default
     /// 0.3 rad.
     pub flip_hysteresis: f64,
-    /// Rate limit (rad/s) of the base's direction of travel. Default 1.0 rad/s.
-    pub direction_rate: f64,
+    /// Largest lateral acceleration |u| φ̇ (m/s²) of a wheel's contact point and of the base
+    /// origin: the rate at which a direction of travel turns times its speed. The drives
+    /// follow the reference with a few milliseconds of lag, and a wheel a small angle off its
+    /// direction rolls sideways by that angle times its speed. Default 2 m/s²: a command
+    /// stream turns in short stretches, and the tracking bounds hold at this value in the
+    /// joystick and Nav2 sessions (the time scaling keeps 0.5 m/s² over a whole path,
+    /// [`crate::timescale::TimeScaleConfig`]).
+    pub lateral_accel: f64,
     /// Time (s) over which an acceleration may build up (bounds the jerk). Default 40 ms
     /// (≥ τ·f/(1 − f) for the default drive lag τ = 20 ms and accel fraction f = 0.6, so the
     /// lag compensation fits within the acceleration limit).
@@ -225,13 +272,14 @@ pub struct ShaperConfig {
     /// while it runs. Default 0.4 m/s².
     pub leg_accel: f64,
     /// Time constant (s) of the command's low-pass (module docs, "Commands that change every
-    /// message"). Default 0.1 s; 0 follows the command as it is.
+    /// message"), reached at a command noise of 5 cm/s at the fastest wheel and scaled down
+    /// in proportion below it. Default 0.25 s; 0 follows the command as it is.
     pub command_smoothing: f64,
     /// Contact speed (m/s) of the fastest wheel under which a smoothed command is rest.
     /// Default 0.01 m/s.
     pub deadband: f64,
     /// Standard deviations of the smoothed command's residual noise added to `deadband`.
-    /// Default 3.
+    /// Default 2.5.
     pub noise_deadband: f64,
     /// Sideways speed (m/s) a turning wheel may roll with while it is not yet aligned.
     /// Default 3 mm/s.
@@ -245,16 +293,16 @@ impl Default for ShaperConfig {
             accel_fraction: 0.6,
             stop_accel_fraction: 1.0,
             align_tolerance: 1.5f64.to_radians(),
-            far_angle: 60f64.to_radians(),
+            far_angle: 180.0f64.to_radians(),
             flip_hysteresis: 0.3,
-            direction_rate: 1.0,
+            lateral_accel: 2.0,
             jerk_time: 0.04,
             stop_jerk_time: 0.02,
             leg_tolerance: 1e-4,
             leg_accel: 0.4,
-            command_smoothing: 0.1,
+            command_smoothing: 0.25,
             deadband: 0.01,
-            noise_deadband: 3.0,
+            noise_deadband: 2.5,
             slip_speed: 0.003,
         }
     }
@@ -456,6 +504,11 @@ pub struct Shaper {
     cmds_seen: u32,
     since_cmd: f64,
     cmd_period: f64,
+    /// The command interpolated between messages, and where the interpolation started.
+    held: [f64; 3],
+    hold_from: [f64; 3],
+    /// Last cycle's twist goal (its change is the goal's rate).
+    last_goal: [f64; 3],
     phase: Phase,
     halted: bool,
     /// Why it is halted (reported as the limiting cause while halted): the command timeout,
@@ -538,6 +591,9 @@ impl Shaper {
             cmds_seen: 0,
             since_cmd: 0.0,
             cmd_period: dt,
+            held: [0.0; 3],
+            hold_from: [0.0; 3],
+            last_goal: [0.0; 3],
             phase: Phase::Cruise,
             halted: true,
             halt_reason: Limiting::None,
@@ -608,6 +664,9 @@ impl Shaper {
         self.cmds_seen = 0;
         self.since_cmd = 0.0;
         self.cmd_period = self.dt;
+        self.held = [0.0; 3];
+        self.hold_from = [0.0; 3];
+        self.last_goal = [0.0; 3];
         self.phase = Phase::Cruise;
         self.halted = true;
         self.halt_reason = Limiting::None;
@@ -635,8 +694,10 @@ impl Shaper {
         if self.halted {
             // From a halt the smoothing starts at the platform's own twist.
             self.smooth = [self.qd[0], self.qd[1], self.qd[2]];
+            self.held = self.smooth;
             self.cmds_seen = 0;
         }
+        self.hold_from = self.held;
         // Noise: second differences of successive commands (a smooth trend cancels out;
         // white noise of variance σ² gives N(0, 6σ²)), robustly: the median of the last
         // NOISE_WINDOW magnitudes, so the two large ones a step makes are not taken for noise
@@ -777,8 +838,30 @@ impl Shaper {
     /// The command smoothed (module docs, "Commands that change every message"), advanced
     /// by one cycle, with the deadband applied.
     fn smoothed_command(&mut self) -> [f64; 3] {
-        let raw = [self.twist_cmd.vx, self.twist_cmd.vy, self.twist_cmd.omega];
-        let tau = self.cfg.command_smoothing;
+        let cmd = [self.twist_cmd.vx, self.twist_cmd.vy, self.twist_cmd.omega];
+        // A stream (messages at least every STREAM_PERIOD) is interpolated from where it
+        // was to each new message over one message period: the goal moves on a polygon, not
+        // in steps (one period of lag; 50 ms for Nav2's 20 Hz).
+        self.since_cmd += self.dt;
+        let p = self.cmd_period;
+        self.held = if cmd == [0.0; 3] || p > STREAM_PERIOD || self.since_cmd >= p {
+            cmd
+        } else {
+            let f = self.since_cmd / p;
+            [
+                self.hold_from[0] + f * (cmd[0] - self.hold_from[0]),
+                self.hold_from[1] + f * (cmd[1] - self.hold_from[1]),
+                self.hold_from[2] + f * (cmd[2] - self.hold_from[2]),
+            ]
+        };
+        let raw = self.held;
+        // The smoothing grows with the command's noise: a clean stream (a navigation stack, a
+        // file) is followed without lag — in a closed loop around the base, lag is what makes
+        // a follower oscillate — a noisy one with up to `command_smoothing`.
+        let lever = (0..self.n).map(|i| self.lam_max[i]).fold(0.0, f64::max);
+        let raw_noise =
+            self.noise[0].sqrt().hypot(self.noise[1].sqrt()) + self.noise[2].sqrt() * lever;
+        let tau = self.cfg.command_smoothing * (raw_noise / FULL_SMOOTHING_NOISE).min(1.0);
         let k = if tau > 0.0 {
             1.0 - (-self.dt / tau).exp()
         } else {
@@ -793,7 +876,6 @@ impl Shaper {
                 self.smooth[a] += k * (raw[a] - self.smooth[a]);
             }
         }
-        self.since_cmd += self.dt;
         // The noise left in the smoothed command: σ²·T/(2τ) per axis (first-order low-pass
         // of white noise held for a message period T).
         let share = if tau > 0.0 {
@@ -802,7 +884,6 @@ impl Shaper {
             1.0
         };
         let sd = |a: usize| (self.noise[a] * share).sqrt();
-        let lever = (0..self.n).map(|i| self.lam_max[i]).fold(0.0, f64::max);
         let noise = sd(0).hypot(sd(1)) + sd(2) * lever;
         // (Below 1 mm/s it is rounding, or noise too small to matter: followed as it is.)
         let b = self.cfg.noise_deadband * noise;
@@ -1241,11 +1322,18 @@ impl Shaper {
                 let g = gs[i];
                 let u = [us[i][0] + b * g[0], us[i][1] + b * g[1]];
                 let un = norm(u);
+                // Every direction of travel turns within the lateral acceleration |u| φ̇ ≤
+                // `lateral_accel` (the drives follow a turn with a few milliseconds of lag:
+                // sideways by that lag times |u| φ̇); a wheel's within its steering rate too.
                 let (rate, accel, what) = if i == self.n {
                     if un < DIRECTION_MIN_SPEED {
                         continue;
                     }
-                    (self.cfg.direction_rate, f64::INFINITY, Limiting::SteerRate)
+                    (
+                        self.cfg.lateral_accel / un,
+                        f64::INFINITY,
+                        Limiting::SteerRate,
+                    )
                 } else {
                     // Slower than this the wheel is not steered by its direction of travel
                     // (module docs, "Where a wheel does not roll"): where the line crosses its
@@ -1253,7 +1341,7 @@ impl Shaper {
                     if (crosses[i] && un < TURN_SPEED) || un <= REST_EPS {
                         continue;
                     }
-                    (sr, sa, Limiting::SteerRate)
+                    (sr.min(self.cfg.lateral_accel / un), sa, Limiting::SteerRate)
                 };
                 let c = cross(u, g).abs();
                 if c == 0.0 {
@@ -1372,8 +1460,39 @@ impl Shaper {
             };
             far |= sweep > self.cfg.far_angle;
         }
+        let zero = [0.0; 3];
+        let (ramp, limit, crosses) = self.plan_line(&from, goal);
+        if !far {
+            // Sweeping round is not always the quicker way: a line that passes a rolling
+            // wheel's zero velocity at a small distance turns its direction fast there and
+            // is crawled through within the steering rate. Stopping, turning the wheels and
+            // rolling again is chosen when it takes less time (the rolling wheels turn from
+            // their direction to the goal's within the steering rate and acceleration, on
+            // the nearer branch).
+            let (sr, sa) = (
+                self.cfg.speed_fraction * self.limits.steer_rate,
+                self.cfg.accel_fraction * self.limits.steer_accel,
+            );
+            let mut align = 0.0f64;
+            for i in 0..self.n {
+                let (u0, u1) = (self.contact(i, &self.qd), self.contact_tw(i, goal));
+                if !self.rolling[i] || norm(u1) <= REST_EPS {
+                    continue;
+                }
+                let d = angle::diff(u0[1].atan2(u0[0]), u1[1].atan2(u1[0])).abs();
+                let d = d.min(PI - d);
+                let t = if d * sa <= sr * sr {
+                    2.0 * (d / sa).sqrt()
+                } else {
+                    d / sr + sr / sa
+                };
+                align = align.max(t);
+            }
+            let stop = self.plan_line(&from, &zero).0.duration();
+            let go = self.plan_line(&zero, goal).0.duration();
+            far = stop + align + go < ramp.duration();
+        }
         if far {
-            let zero = [0.0; 3];
             let (ramp, _, crosses) = self.plan_line(&from, &zero);
             self.phase = Phase::Line {
                 crosses,
@@ -1386,7 +1505,6 @@ impl Shaper {
             };
             return;
         }
-        let (ramp, limit, crosses) = self.plan_line(&from, goal);
         self.phase = Phase::Line {
             crosses,
             from,
@@ -1401,6 +1519,24 @@ impl Shaper {
     /// One cycle of the twist towards `goal` (module docs, "Transitions"); returns what
     /// binds the running transition (`None` when there is none).
     fn step_twist(&mut self, goal: &[f64; 3]) -> Limiting {
+        let rate = [
+            (goal[0] - self.last_goal[0]) / self.dt,
+            (goal[1] - self.last_goal[1]) / self.dt,
+            (goal[2] - self.last_goal[2]) / self.dt,
+        ];
+        self.last_goal = *goal;
+        if matches!(self.phase, Phase::Cruise)
+            && !self.halted
+            && matches!(self.legs_move, LegMove::Idle)
+        {
+            if self.track(goal, &rate) {
+                return Limiting::None;
+            }
+            if self.qdd[..3].iter().any(|a| *a != 0.0) {
+                self.coast();
+                return Limiting::None;
+            }
+        }
         if matches!(self.phase, Phase::Cruise) && self.goal_differs(goal) {
             // A new twist waits for the legs: a running leg move brakes first (module docs,
             // "Legs"); a halt does not wait.
@@ -1474,6 +1610,152 @@ impl Shaper {
             }
         }
         limiting
+    }
+
+    /// Contact-speed measure of a twist-space vector: the fastest wheel's |G_i v| (m/s for a
+    /// twist, m/s² for its acceleration).
+    fn wheel_norm(&self, v: &[f64; 3]) -> f64 {
+        (0..self.n)
+            .map(|i| norm(self.contact_tw(i, v)))
+            .fold(0.0, f64::max)
+    }
+
+    /// One cycle of continuous tracking of a goal that moves at `rate` (module docs,
+    /// "Tracking a stream"); false (nothing changed) where a transition is needed instead.
+    fn track(&mut self, goal: &[f64; 3], rate: &[f64; 3]) -> bool {
+        let h = self.dt;
+        let e = [
+            goal[0] - self.qd[0],
+            goal[1] - self.qd[1],
+            goal[2] - self.qd[2],
+        ];
+        let en = self.wheel_norm(&e);
+        if en > TRACK_ERROR || (en == 0.0 && self.qdd[..3].iter().all(|a| *a == 0.0)) {
+            return false;
+        }
+        let prev = [self.qdd[0], self.qdd[1], self.qdd[2]];
+        // A noisy command's wiggles within the noise band are not followed: the tracking
+        // gain fades to zero as the difference shrinks to the band.
+        let g = if self.band > 0.0 {
+            (1.0 - self.band / en.max(1e-12)).max(0.0)
+        } else {
+            1.0
+        };
+        let mut want = [0.0; 3];
+        for c in 0..3 {
+            want[c] = g * (rate[c] + e[c] / TRACK_TIME);
+        }
+        // Within the jerk and the acceleration of the transitions.
+        let a_c = self.contact_accel(false);
+        let jmax = a_c / self.cfg.jerk_time.max(1e-6) * h;
+        let d = [want[0] - prev[0], want[1] - prev[1], want[2] - prev[2]];
+        let dn = self.wheel_norm(&d);
+        if dn > jmax {
+            for c in 0..3 {
+                want[c] = prev[c] + d[c] * jmax / dn;
+            }
+        }
+        let an = self.wheel_norm(&want);
+        if an > a_c {
+            for c in 0..3 {
+                want[c] *= a_c / an;
+            }
+        }
+        // The change of acceleration also within every rolling wheel's steering
+        // acceleration: a rolling wheel's steering rate is ⟨u × u̇⟩/|u|².
+        let (sr, sa) = (
+            self.cfg.speed_fraction * self.limits.steer_rate,
+            self.cfg.accel_fraction * self.limits.steer_accel,
+        );
+        let d = [want[0] - prev[0], want[1] - prev[1], want[2] - prev[2]];
+        let mut k = 1.0f64;
+        for i in 0..self.n {
+            let u = self.contact(i, &self.qd);
+            let un = norm(u);
+            if self.rolling[i] && un >= TURN_SPEED {
+                let dr = cross(u, self.contact_tw(i, &d)).abs() / (un * un);
+                if dr * k > sa * h {
+                    k = sa * h / dr;
+                }
+            }
+        }
+        for c in 0..3 {
+            want[c] = prev[c] + k * d[c];
+        }
+        let mut next = [0.0; 3];
+        for c in 0..3 {
+            next[c] = self.qd[c] + h * want[c];
+        }
+        // Arrived within rounding: exactly the goal.
+        let left = [goal[0] - next[0], goal[1] - next[1], goal[2] - next[2]];
+        let arrived = self.wheel_norm(&left) <= 1e-9 && self.wheel_norm(&want) <= 1e-6;
+        // Every wheel rolls, fast enough for its direction to mean something, and turns
+        // within its steering rate, acceleration and the lateral acceleration.
+        let lat = self.cfg.lateral_accel;
+        for i in 0..self.n {
+            let (u0, u1) = (self.contact(i, &self.qd), self.contact_tw(i, &next));
+            if !self.rolling[i] {
+                if norm(u1) > REST_EPS {
+                    return false;
+                }
+                continue;
+            }
+            let (n0, n1) = (norm(u0), norm(u1));
+            if n0 < TURN_SPEED || n1 < TURN_SPEED {
+                return false;
+            }
+            let r = cross(u1, self.contact_tw(i, &want)) / (n1 * n1);
+            if r.abs() > sr.min(lat / n1) || (r - self.steer_rate[i]).abs() > 1.5 * sa * h {
+                return false;
+            }
+        }
+        let (v0, v1) = ([self.qd[0], self.qd[1]], [next[0], next[1]]);
+        if norm(v0).min(norm(v1)) >= DIRECTION_MIN_SPEED {
+            let r = cross(v0, v1).atan2(dot(v0, v1)) / h;
+            if r.abs() > lat / norm(v1) {
+                return false;
+            }
+        }
+        if arrived {
+            self.qd[..3].copy_from_slice(goal);
+            for c in 0..3 {
+                self.qddd[c] = -prev[c] / h;
+                self.qdd[c] = 0.0;
+            }
+        } else {
+            self.qd[..3].copy_from_slice(&next);
+            for c in 0..3 {
+                self.qddd[c] = (want[c] - prev[c]) / h;
+                self.qdd[c] = want[c];
+            }
+        }
+        true
+    }
+
+    /// One cycle of bringing the twist's acceleration to zero (after tracking, before a
+    /// transition): within the jerk, and slow enough that every rolling wheel's steering
+    /// rate winds down within its acceleration.
+    fn coast(&mut self) {
+        let h = self.dt;
+        let prev = [self.qdd[0], self.qdd[1], self.qdd[2]];
+        let a_c = self.contact_accel(false);
+        let j = a_c / self.cfg.jerk_time.max(1e-6);
+        let sa = self.cfg.accel_fraction * self.limits.steer_accel;
+        let mut t = self.wheel_norm(&prev) / j;
+        for i in 0..self.n {
+            let u = self.contact(i, &self.qd);
+            let un = norm(u);
+            if self.rolling[i] && un > REST_EPS {
+                let r = cross(u, self.contact_tw(i, &prev)) / (un * un);
+                t = t.max(r.abs() / sa);
+            }
+        }
+        let f = if t <= h { 0.0 } else { 1.0 - h / t };
+        for c in 0..3 {
+            self.qdd[c] = prev[c] * f;
+            self.qddd[c] = (self.qdd[c] - prev[c]) / h;
+            self.qd[c] += h * self.qdd[c];
+        }
     }
 
     /// Advances one cycle and returns the reference sample (module docs).

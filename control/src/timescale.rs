@@ -113,6 +113,40 @@
 //! after the feedback's corrections near rest. The blends' rates and accelerations are
 //! limited like any other steering demand.
 //!
+//! # Stops and dwells
+//!
+//! Seed 004 keeps the direction of the operational motion and changes only the speed of
+//! its execution (Sect. 4.1). At a point where the path itself stops (ż = 0: a repeated
+//! waypoint, a reversal, the start and the end) there is no direction to keep: a wheel's
+//! direction of travel u_i/|u_i| is 0/0 there, and along the path next to it the direction
+//! turns at dφ/dτ = (u × u')/|u|², which grows like 1/|u| as the speed goes to zero. A
+//! clock that kept every wheel's steering rate within its share would have to crawl,
+//! ṡ → 0, into the stop and out of it — an unbounded duration (the 1e147 s plans).
+//!
+//! Instead the path is cut at its exact stops ([`Trajectory::stops`] and the rests at its
+//! ends): each piece between two stops is timed on its own, from rest to rest, and at each
+//! stop the clock holds for a **dwell** while every wheel steers from the direction it
+//! arrived in to the direction it leaves in. Both are limits, well defined where the first
+//! derivative vanishes: with u(τ₀) = 0 and u'(τ₀) ≠ 0, u(τ) ≈ u'(τ₀)(τ − τ₀), so the
+//! direction tends to ±u'(τ₀)/|u'(τ₀)| (the sign of τ − τ₀ picks the side); where u' also
+//! vanishes, the first non-zero derivative gives it (taken in practice from the points next
+//! to the stop). The dwell's steering is the quintic in executed time matching the steering
+//! angle, rate and acceleration of the pieces on either side, on the branch nearest the
+//! arrival angle; its duration is the shortest for which the quintic's
+//! rate and acceleration stay within the steering shares (`dwell_duration`). A stop, a
+//! corner at a stop, a reversal, a start from rest thus cost a bounded dwell.
+//!
+//! A path that only nearly stops — the fastest wheel slower than [`NEAR_REST`] at the
+//! clock's cap over less than [`NEAR_REST_TRAVEL`] of travel, inside a piece (a corner whose
+//! waypoints are a few millimetres apart) — has the same problem without an exact stop to
+//! cut at: its wheels' steering there is blended from the direction before to the one after
+//! (the Hermite blend of the previous section for every wheel), and the clock slows so that
+//! the blend stays within the steering shares. The run by which a piece leaves or reaches
+//! its exact stop is blended the same way only where some wheel's direction turns by more
+//! than 2° along it (a path that starts straight from rest, like seed 000, is followed as
+//! it is). These stretches are reported with the dwells
+//! ([`ScaledTrajectory::dwells`], [`Timing::dwell_s`] counts only the true dwells).
+//!
 //! # What no timing can fix
 //!
 //! [`ScaledTrajectory::plan`] (and [`check_fixable`]) refuses, naming the waypoint when the
@@ -154,6 +188,10 @@ const REST_W: f64 = 1e-9;
 /// to the one after (the clock slows to let them turn within their limits: a planned dwell
 /// at a near stop, [`ScaledTrajectory::dwells`]).
 pub const NEAR_REST: f64 = 0.5 * HOLD_SPEED;
+/// Turn (rad) of a wheel's direction of travel along a near stop at a piece's end beyond
+/// which the run is blended like a near stop inside the piece (module docs, "Stops and
+/// dwells").
+const END_RUN_TURN: f64 = 0.035;
 /// Longest travel (m) of the platform along a near stop.
 pub const NEAR_REST_TRAVEL: f64 = 0.005;
 /// Direction change (rad) between two grid points beyond what the steering rate explains
@@ -191,8 +229,9 @@ pub struct TimeScaleConfig {
     /// Largest lateral acceleration |u| |φ̇| of a wheel's contact point (m/s²): the rate at
     /// which its direction of travel turns times its speed. The steering drives follow the
     /// reference with a few milliseconds of residual lag, and a wheel a small angle δ off its
-    /// direction rolls δ |u| sideways; that drift is |u| φ̇ × the lag. Default 0.5 m/s² (the
-    /// shaper's `direction_rate` of 1 rad/s at half the platform's top speed).
+    /// direction rolls δ |u| sideways; that drift is |u| φ̇ × the lag. Default 0.5 m/s²: a
+    /// pre-planned path is held to it over its whole length (the live shaper allows
+    /// 2 m/s² for the short turns of a command stream, `ShaperConfig::lateral_accel`).
     pub lateral_accel: f64,
 }
 
@@ -2241,9 +2280,10 @@ fn steering_geometry(
 }
 
 /// The grid points of the path's near stops (module docs, "Stops and dwells"): maximal runs
-/// of points where the fastest wheel is slower than [`NEAR_REST`] at the clock's cap, along
-/// which the platform travels less than [`NEAR_REST_TRAVEL`] (a deliberately slow motion
-/// over a longer distance is steered by its directions as any other).
+/// of points inside a piece where the fastest wheel is slower than [`NEAR_REST`] at the
+/// clock's cap, along which the platform travels less than [`NEAR_REST_TRAVEL`] (a
+/// deliberately slow motion over a longer distance is steered by its directions as any
+/// other).
 fn near_stops(g: &Grid) -> Vec<bool> {
     let points = g.points();
     let mut near = vec![false; points];
@@ -2261,13 +2301,42 @@ fn near_stops(g: &Grid) -> Vec<bool> {
             }
             j += 1;
         }
-        if travel <= NEAR_REST_TRAVEL {
+        // A run that starts or ends the piece leaves (or reaches) the exact stop there, whose
+        // dwell steers the wheels to the path's limit direction: where no wheel's direction
+        // of travel turns by more than END_RUN_TURN along the run, the wheels roll on along
+        // it without a blend (a path that starts straight from rest is followed as it is).
+        let at_end = start == 0 || j == points;
+        if travel <= NEAR_REST_TRAVEL && (!at_end || run_turns(g, start, j) > END_RUN_TURN) {
             for v in &mut near[start..j] {
                 *v = true;
             }
         }
     }
     near
+}
+
+/// Largest turn (rad, modulo π) of a wheel's direction of travel over the grid points
+/// `a..b` (points where it rests are skipped).
+fn run_turns(g: &Grid, a: usize, b: usize) -> f64 {
+    let n = g.geo.len() / g.points().max(1);
+    let mut worst = 0.0f64;
+    for i in 0..n {
+        let (mut lo, mut hi, mut first): (f64, f64, Option<f64>) = (0.0, 0.0, None);
+        for j in a..b {
+            let q = &g.geo[j * n + i];
+            if q.speed <= REST_W {
+                continue;
+            }
+            let d = q.w[1].atan2(q.w[0]);
+            let f = *first.get_or_insert(d);
+            let mut e = d - f;
+            e -= (e / PI).round() * PI;
+            lo = lo.min(e);
+            hi = hi.max(e);
+        }
+        worst = worst.max(hi - lo);
+    }
+    worst
 }
 
 /// Whether wheel `i`'s direction of travel jumps between path times `a` and `b`: bisects
