@@ -56,8 +56,8 @@ if only_loopback():
 
 HUGE = 4_000_000  # entries (f64): 32 MB, the review's message
 HUGE_COUNT = 3
-# rustdds keeps the last 64 samples of a topic (ResourceLimits default, not settable through
-# ros2-client 0.12): a normal stream longer than that replaces the huge ones.
+# rustdds keeps up to the last 64 samples of a topic (its ResourceLimits default): a normal
+# stream longer than that replaces the huge ones.
 NORMAL_COUNT = 80
 # What may stay: the node's normal growth over the test (a few hundred kB) and allocator
 # slack. The huge messages were 96 MB; before the fix 14–50 MB of them stayed.
