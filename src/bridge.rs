@@ -1065,31 +1065,40 @@ fn config(a: &BridgeArgs) -> Result<BridgeConfig, BridgeError> {
     })
 }
 
-/// Resolves when Ctrl-C (SIGINT), SIGTERM, SIGHUP (the terminal went away) or SIGQUIT arrives.
-async fn stop_signal() {
+/// The signals that stop the bridge: SIGINT (Ctrl-C), SIGTERM, SIGHUP (the terminal went away)
+/// and SIGQUIT. Registered before the bridge says it is listening, so that none of them kills
+/// it (without its totals) between that line and the first poll of the shutdown future.
+/// Must be called within the runtime.
+fn stop_signals() -> Vec<(tokio::signal::unix::Signal, &'static str)> {
     use tokio::signal::unix::SignalKind;
-    let one = |kind: SignalKind, name: &'static str| async move {
+    let mut v = Vec::with_capacity(4);
+    for (kind, name) in [
+        (SignalKind::interrupt(), "Ctrl-C (SIGINT)"),
+        (SignalKind::terminate(), "SIGTERM"),
+        (SignalKind::hangup(), "SIGHUP"),
+        (SignalKind::quit(), "SIGQUIT"),
+    ] {
         match tokio::signal::unix::signal(kind) {
-            Ok(mut s) => {
-                s.recv().await;
-                info!("{name}: stopping");
-            }
+            Ok(s) => v.push((s, name)),
             Err(e) => {
-                warn!("cannot listen for {name} ({e}); it ends the bridge without its totals");
-                std::future::pending::<()>().await
+                warn!("cannot listen for {name} ({e}); it ends the bridge without its totals")
             }
         }
-    };
-    tokio::select! {
-        r = tokio::signal::ctrl_c() => match r {
-            Ok(()) => info!("Ctrl-C: stopping"),
-            Err(e) => {
-                warn!("cannot listen for Ctrl-C ({e}); stopping");
-            }
-        },
-        _ = one(SignalKind::terminate(), "SIGTERM") => {}
-        _ = one(SignalKind::hangup(), "SIGHUP") => {}
-        _ = one(SignalKind::quit(), "SIGQUIT") => {}
+    }
+    v
+}
+
+/// Resolves when one of the registered stop signals arrives (never, if none could be).
+async fn stop_signal(mut sigs: Vec<(tokio::signal::unix::Signal, &'static str)>) {
+    if sigs.is_empty() {
+        return std::future::pending::<()>().await;
+    }
+    let waits = sigs
+        .iter_mut()
+        .map(|(s, name)| Box::pin(async move { s.recv().await.map(|()| *name) }));
+    match futures::future::select_all(waits).await.0 {
+        Some(name) => info!("{name}: stopping"),
+        None => warn!("a signal stream ended; stopping"),
     }
 }
 
@@ -1147,6 +1156,7 @@ pub fn run(a: BridgeArgs) -> Result<i32, BridgeError> {
             })?),
             None => None,
         };
+        let signals = stop_signals();
         let listener = TcpListener::bind(a.listen)
             .await
             .map_err(|source| BridgeError::Listen {
@@ -1174,11 +1184,11 @@ pub fn run(a: BridgeArgs) -> Result<i32, BridgeError> {
             match duration {
                 Some(d) => {
                     tokio::select! {
-                        _ = stop_signal() => {}
+                        _ = stop_signal(signals) => {}
                         _ = tokio::time::sleep(d) => {}
                     }
                 }
-                None => stop_signal().await,
+                None => stop_signal(signals).await,
             }
         };
         let r = serve(listener, hub.clone(), can, shutdown).await;
