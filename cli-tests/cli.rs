@@ -1278,3 +1278,119 @@ fn a_waypoint_file_runs_time_scaled_in_the_demo() {
     assert!(err.contains("waypoints[1].legs[0] = 0.6"), "{err}");
     let _ = std::fs::remove_dir_all(dir);
 }
+
+#[test]
+fn example_platforms_print_check_and_their_new_fields_are_explained() {
+    let _serial = serial();
+    let dir = std::env::temp_dir().join(format!("rollbase-cli-ex-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut files = Vec::new();
+    for name in ["mpo700", "three-wheel", "six-wheel"] {
+        let out = rollbase()
+            .args(["config", "default", "--example", name])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{name}");
+        let text = String::from_utf8(out.stdout).unwrap();
+        // The printed example is the one in docs/examples.
+        let doc = std::fs::read_to_string(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join(format!("docs/examples/{name}.toml")),
+        )
+        .unwrap();
+        assert_eq!(text, doc, "docs/examples/{name}.toml is stale");
+        let path = dir.join(format!("{name}.toml"));
+        std::fs::write(&path, &text).unwrap();
+        let out = rollbase()
+            .args(["config", "check"])
+            .arg(&path)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        files.push(text);
+    }
+    let out = rollbase()
+        .args(["config", "default", "--example", "mpo500"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("mpo700, three-wheel or six-wheel"));
+    // Each new field's error names the field and says what to give.
+    let mpo = &files[0];
+    for (from, to, field, hint) in [
+        (
+            "caster_offset = 0.045",
+            "caster_offset = -0.01",
+            "wheels[0].caster_offset",
+            "trailing caster",
+        ),
+        ("bus = 0", "bus = 2", "wheels[0].bus", "must be 0 or 1"),
+        (
+            "drive_polarity = 1",
+            "drive_polarity = 0",
+            "wheels[0].drive_polarity",
+            "mirrored",
+        ),
+        (
+            "steer_polarity = 1",
+            "steer_polarity = 2",
+            "wheels[0].steer_polarity",
+            "mirrored",
+        ),
+        (
+            "coupling = 0.0",
+            "coupling = 50.0",
+            "wheels[0].coupling",
+            "within ±10",
+        ),
+        (
+            "    -7.5398223686155035,",
+            "    7.6,",
+            "wheels[0].steer_range",
+            "half a turn",
+        ),
+        (
+            "lambda = 0.30610455730027936",
+            "lambda = -1.0",
+            "wheels[0].lambda",
+            "greater than 0",
+        ),
+    ] {
+        assert!(mpo.contains(from), "the example lacks `{from}`");
+        let bad = dir.join("bad.toml");
+        std::fs::write(&bad, mpo.replacen(from, to, 1)).unwrap();
+        let out = rollbase()
+            .args(["config", "check"])
+            .arg(&bad)
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "`{to}` accepted");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(field) && err.contains(hint), "`{to}`: {err}");
+    }
+    // A wheel with both a fixed `lambda` and a leg range is refused, naming what to remove.
+    let six = files[2].replacen("lambda_min = 0.37", "lambda = 0.4", 1);
+    let bad = dir.join("bad.toml");
+    std::fs::write(&bad, six).unwrap();
+    let out = rollbase()
+        .args(["config", "check"])
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("has no leg"));
+    // Running on two buses is refused (one `--bus` so far), not run on one medium.
+    let six = dir.join("six-wheel.toml");
+    let out = rollbase()
+        .args(["demo", "--lockstep", "--config"])
+        .arg(&six)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("bus 1"));
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -1307,6 +1307,7 @@ mod tests {
             len: 8,
             data: [1, 2, 3, 4, 5, 6, 7, 8],
             error: None,
+            bus: 0,
         });
         if k.is_multiple_of(5) {
             r.push_rx(FrameRecord {
@@ -1315,6 +1316,7 @@ mod tests {
                 len: 8,
                 data: [9; 8],
                 error: Some("crc"),
+                bus: 0,
             });
         }
         r.push_tx(FrameRecord {
@@ -1323,6 +1325,7 @@ mod tests {
             len: 4,
             data: [0; 8],
             error: None,
+            bus: 0,
         });
         r.pose.x = k as f64;
         r
@@ -1421,6 +1424,48 @@ mod tests {
                 assert_eq!(m.log_time, 5);
             }
         }
+    }
+
+    #[test]
+    fn a_fixed_footprint_records_no_leg_joints_and_no_leg_topic() {
+        let dir = tmp("fixed");
+        let path = dir.join("f.mcap");
+        let mut rec = McapRecorder::create(&path, &BTreeMap::new()).unwrap();
+        for k in 0..50u64 {
+            let mut s = BaseState {
+                cycle: k,
+                t: k as f64 * 0.004,
+                log_time_ns: k * 4_000_000,
+                n: 3,
+                ..Default::default()
+            };
+            for j in &mut s.joints[..3] {
+                j.no_leg = true;
+                j.leg = 0.3;
+            }
+            rec.write_state(&s).unwrap();
+        }
+        let s = rec.finish().unwrap();
+        assert_eq!(s.messages["/joint_states"], 10);
+        assert!(
+            s.messages.keys().all(|t| !t.contains("leg")),
+            "{:?}",
+            s.messages
+        );
+        let bytes = std::fs::read(&path).unwrap();
+        let mut seen = 0;
+        for m in mcap::MessageStream::new(&bytes).unwrap() {
+            let m = m.unwrap();
+            if m.channel.topic == "/joint_states" {
+                let j: msg::JointState = msg::from_cdr(&m.data).unwrap();
+                assert_eq!(j.name.len(), 6, "{:?}", j.name);
+                assert!(j.name.iter().all(|n| !n.contains("leg")), "{:?}", j.name);
+                assert_eq!(j.position.len(), 6);
+                seen += 1;
+            }
+        }
+        assert_eq!(seen, 10);
+        let _ = std::fs::remove_dir_all(dir);
     }
 
     #[test]

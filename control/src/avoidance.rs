@@ -86,6 +86,60 @@
 //! the state is exactly zero and the ICR is outside every field, [`Avoidance::step`] returns
 //! the nominal sample itself (bit-identical).
 //!
+//! # Pre-planned trajectories: the avoidance before the run, the time scaling after it
+//!
+//! Run online on a time-scaled trajectory (nominal → scaling → [`Avoidance::step`] →
+//! controller), the filter adds accelerations and, near a wheel, steering rates that no
+//! timing budgeted: the scaling planned the *nominal* path within the limits, and whatever
+//! is added after it is not. Measured on issue 23's lockstep runs (both profiles): the
+//! seed-001 experiment tracked its avoided reference to 14.8 mm, pivots about a wheel to
+//! 42–58 mm (two of four faulted), ICR sweeps to 3–22 mm, against a 5 mm bound. So with a
+//! pre-planned trajectory the order is reversed ([`AvoidedTrajectory`], used by the runtime
+//! whenever the avoidance is on):
+//!
+//! ```text
+//!   z*(t) ─► Avoidance::step at the cycle period, offline ─► z*(t) + δ(t) ─► time scaling ─► controller
+//! ```
+//!
+//! * **The ICR is a property of the path, not of its timing.** Along a path z(τ) run on a
+//!   clock τ(t), every velocity is z' ṡ, so v_b and θ̇ scale by the same ṡ and the ICR
+//!   z = S v_b/θ̇ (eq. 1) and every distance d_i = |u_i|/|θ̇| are unchanged. The fields keep
+//!   the ICR of the avoided path where they put it at any timing: the time scaling, which
+//!   only changes ṡ, keeps what the avoidance did, and the avoidance, computed first, needs
+//!   no knowledge of the timing that follows.
+//! * **The avoided path is the filter's, unchanged.** δ_k is the deviation the filter holds
+//!   at cycle k when fed the nominal at t_k = k Δt — the same dynamics (push, leg law,
+//!   return loop, clamps) and the same numbers as online, from the start of the trajectory
+//!   to its end and on, with the trajectory at its goal, until the return loop has brought
+//!   δ back to exactly zero (at most [`MAX_RETURN_S`]; a deviation that never returns is
+//!   refused before the run, [`AvoidanceError::Unsettled`]).
+//! * **Continuous to the derivatives the DFL needs.** The filter integrates with
+//!   semi-implicit Euler (δ̇_{k+1} = δ̇_k + δ̈_k Δt, δ_{k+1} = δ_k + δ̇_{k+1} Δt), which is the
+//!   Störmer–Verlet recursion δ_{k+1} − 2δ_k + δ_{k−1} = δ̈_k Δt². The uniform cubic B-spline
+//!   with control points δ_k has, at knot k, the value (δ_{k−1} + 4δ_k + δ_{k+1})/6 =
+//!   δ_k + δ̈_k Δt²/6, the rate (δ_{k+1} − δ_{k−1})/(2Δt) = δ̇_k + δ̈_k Δt/2 and the
+//!   acceleration (δ_{k+1} − 2δ_k + δ_{k−1})/Δt² = δ̈_k exactly: it is the filter's output
+//!   to 1.6 µm per m/s² and 2 mm/s per m/s² (at Δt = 4 ms), it is C² (its acceleration is
+//!   piecewise linear, the filter's δ̈_k at the knots) and its jerk is piecewise constant,
+//!   (δ̈_{k+1} − δ̈_k)/Δt. Added to the nominal (C² with bounded jerk), the avoided path is C²
+//!   with bounded jerk: a path [`crate::timescale::ScaledTrajectory`] can time, and whose
+//!   derivatives the time scaling and the DFL read exactly (no numerical differentiation).
+//! * **Within every limit.** The avoided path is then time-scaled like any other
+//!   ([`crate::timescale`]): every wheel speed and acceleration, steering rate and
+//!   acceleration and leg speed within its share, C² clock, steering references for the
+//!   wheels the ICR rests on, dwells at stops. The runtime always scales an avoided path
+//!   (with the default margins when the scaling is off): it is a path the avoidance made,
+//!   not the timing the user gave, and only its scaling keeps it within the limits. The
+//!   controller then follows a reference within the limits, and its errors are measured
+//!   against it.
+//! * **What the record shows.** Each cycle records the filter's state at the path time the
+//!   clock has reached (active, ICR, distances, radii, δ): the seed-001 experiment still
+//!   shows its avoidance acting where the nominal ICR passes the wheels.
+//! * **Cost.** One pass of the filter per cycle of the trajectory before the run (as online),
+//!   and 8 (3 + n) bytes per cycle of δ over the stretches where it is not zero (56 bytes a
+//!   cycle, 14 kB per second of avoided motion); nothing else is stored. Per cycle of the
+//!   run, [`AvoidedTrajectory::state_at`] gives the record (no allocation).
+//!
 //! # Live commands: the avoidance at the velocity level
 //!
 //! Everything above filters a *trajectory*: a reference with a pose to return to. A live
@@ -187,6 +241,19 @@ pub enum AvoidanceError {
         radii: f64,
         /// Distance between the two contact points (m).
         distance: f64,
+    },
+    /// Along a pre-planned trajectory the return loop had not brought the deviation back
+    /// to zero this long after the trajectory's end ([`AvoidedTrajectory::plan`]).
+    #[error(
+        "the avoidance's deviation from the trajectory ({deviation:.4}) has not returned to \
+         zero {after_s} s after its end; end the trajectory with the ICR away from the wheels \
+         or run with the avoidance off"
+    )]
+    Unsettled {
+        /// Time after the end (s).
+        after_s: f64,
+        /// Largest component of the remaining deviation (m or rad).
+        deviation: f64,
     },
     /// Eq. 20 makes a field reach the platform centre (where the ICR of a pure rotation is).
     #[error(
@@ -991,6 +1058,276 @@ pub fn avoid_twist(
     out.active = true;
     out.push = p;
     out
+}
+
+/// Longest time (s) the return loop may take after a trajectory's end to bring the deviation
+/// back to zero in [`AvoidedTrajectory::plan`] (ten times the settling time of the default
+/// return loop, ω_n = 3 rad/s).
+pub const MAX_RETURN_S: f64 = 20.0;
+
+/// Seed 001's avoidance applied to a pre-planned trajectory before the run (module docs,
+/// "Pre-planned trajectories"): the nominal z*(t) plus the deviation δ(t) the filter
+/// [`Avoidance::step`] produces along it at the cycle period, δ interpolated by the uniform
+/// cubic B-spline whose control points are the filter's δ_k. The result is C² with bounded
+/// jerk, so [`crate::timescale::ScaledTrajectory`] can time it within every limit.
+pub struct AvoidedTrajectory {
+    inner: Box<dyn crate::trajectory::Trajectory>,
+    platform: Platform,
+    cfg: AvoidanceConfig,
+    n: usize,
+    /// Cycle period of the filter (s): the knot spacing.
+    dt: f64,
+    /// Runs of consecutive knots whose δ_k is not zero: (first knot, δ of each, 3 + n
+    /// values per knot). δ_k is zero between them, so only the avoided stretches cost memory.
+    spans: Vec<(usize, Vec<f64>)>,
+    /// Knot intervals [a, b) in which the repulsion acted (the filter's `active`).
+    active: Vec<(usize, usize)>,
+    /// Duration: the inner one, or the end of the return loop after it (s).
+    duration: f64,
+}
+
+impl std::fmt::Debug for AvoidedTrajectory {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("AvoidedTrajectory")
+            .field("n", &self.n)
+            .field("dt", &self.dt)
+            .field("spans", &self.spans.len())
+            .field("active", &self.active)
+            .field("duration", &self.duration)
+            .finish()
+    }
+}
+
+impl AvoidedTrajectory {
+    /// Runs [`Avoidance::step`] with `cfg` along `inner` at the platform's cycle period, from
+    /// its start to its end and on, with the trajectory at its goal, until the return loop
+    /// has brought the deviation back to exactly zero. Fails when `cfg` is invalid for `p`,
+    /// or when the deviation has not returned [`MAX_RETURN_S`] after the end.
+    pub fn plan(
+        p: &Platform,
+        inner: Box<dyn crate::trajectory::Trajectory>,
+        cfg: AvoidanceConfig,
+    ) -> Result<Self, AvoidanceError> {
+        let mut av = Avoidance::try_new(p, cfg)?;
+        let dt = p.dt();
+        let n = p.n().min(inner.n_legs()).min(MAX_WHEELS);
+        let m = 3 + n;
+        let end = inner.duration();
+        if !(end.is_finite() && end >= 0.0 && dt > 0.0 && dt.is_finite()) {
+            return Err(AvoidanceError::Invalid {
+                field: "trajectory duration",
+                value: end,
+                reason: "must be a finite time of zero or more",
+            });
+        }
+        let last_nominal = (end / dt).ceil() as usize;
+        let last_allowed = last_nominal + (MAX_RETURN_S / dt).ceil() as usize;
+        let mut spans: Vec<(usize, Vec<f64>)> = Vec::new();
+        let mut active: Vec<(usize, usize)> = Vec::new();
+        let mut last_nonzero = None;
+        let mut k = 0usize;
+        loop {
+            let t = k as f64 * dt;
+            let nominal = inner.sample(t.min(end));
+            let (_, st) = av.step(p, &nominal, dt);
+            let d = &st.deviation.as_slice()[..m];
+            if d.iter().any(|v| *v != 0.0) {
+                match spans.last_mut() {
+                    Some((first, values)) if *first + values.len() / m == k => {
+                        values.extend_from_slice(d)
+                    }
+                    _ => spans.push((k, d.to_vec())),
+                }
+                last_nonzero = Some(k);
+            }
+            if st.active {
+                match active.last_mut() {
+                    Some((_, b)) if *b == k => *b = k + 1,
+                    _ => active.push((k, k + 1)),
+                }
+            }
+            if k >= last_nominal && av.is_zero() && !st.active {
+                break;
+            }
+            if k >= last_allowed {
+                return Err(AvoidanceError::Unsettled {
+                    after_s: MAX_RETURN_S,
+                    deviation: av.delta.amax(),
+                });
+            }
+            k += 1;
+        }
+        // Control point j shapes the B-spline over ((j − 2) Δt, (j + 2) Δt): after the last
+        // non-zero one δ is zero, at rest.
+        let duration = match last_nonzero {
+            Some(j) => end.max((j + 2) as f64 * dt),
+            None => end,
+        };
+        Ok(Self {
+            inner,
+            platform: p.clone(),
+            cfg,
+            n,
+            dt,
+            spans,
+            active,
+            duration,
+        })
+    }
+
+    /// The trajectory the avoidance was applied to.
+    pub fn inner(&self) -> &dyn crate::trajectory::Trajectory {
+        self.inner.as_ref()
+    }
+
+    /// The knot nearest to time `t` (s).
+    fn knot(&self, t: f64) -> usize {
+        if t.is_finite() && t > 0.0 {
+            (t.min(self.duration) / self.dt).round() as usize
+        } else {
+            0
+        }
+    }
+
+    /// The filter's record at the knot nearest to time `t` (s): whether the repulsion acted
+    /// there and δ_k as the filter had them; the ICR, its distances and the field radii of
+    /// the avoided path there, the rate and acceleration of δ from the B-spline. No
+    /// allocation.
+    pub fn state_at(&self, t: f64) -> AvoidanceState {
+        let k = self.knot(t);
+        let tk = k as f64 * self.dt;
+        let r = crate::trajectory::Trajectory::sample(self, tk);
+        let nominal = self.inner.sample(tk.min(self.inner.duration()));
+        let scan = scan_fields(&self.platform, &self.cfg, &r, &nominal.z);
+        let i = self.active.partition_point(|&(a, _)| a <= k);
+        let active = i > 0 && k < self.active[i - 1].1;
+        let delta = self.point(k as isize);
+        let [_, rate, accel, _] = self.deviation(tk);
+        let force = match scan.nearest {
+            Some(w) if active => repulsive_force(scan.dist[w], scan.radius[w], self.cfg.f_max),
+            _ => 0.0,
+        };
+        AvoidanceState {
+            active,
+            deviating: active || !self.zero_around(tk),
+            icr_body: scan.icr,
+            nearest_wheel: scan.nearest,
+            min_distance: scan.min_distance,
+            d_start: scan.radius,
+            force,
+            deviation: delta,
+            deviation_rate: rate,
+            deviation_accel: accel,
+        }
+    }
+
+    /// Control point k of the B-spline: δ_k, zero outside the spans.
+    fn point(&self, k: isize) -> ZVec {
+        let mut out = ZVec::zeros();
+        if k < 0 {
+            return out;
+        }
+        let k = k as usize;
+        let m = 3 + self.n;
+        let i = self.spans.partition_point(|(first, _)| *first <= k);
+        if i == 0 {
+            return out;
+        }
+        let (first, values) = &self.spans[i - 1];
+        let j = k - first;
+        if let Some(d) = values.get(j * m..(j + 1) * m) {
+            out.as_mut_slice()[..m].copy_from_slice(d);
+        }
+        out
+    }
+
+    /// Whether the four control points that make the B-spline at `t` are all zero.
+    fn zero_around(&self, t: f64) -> bool {
+        let k = (t / self.dt).max(0.0).floor() as isize;
+        (k - 1..=k + 2).all(|j| self.point(j).iter().all(|v| *v == 0.0))
+    }
+
+    /// δ, δ̇, δ̈, δ⃛ at time `t` (uniform cubic B-spline over the knots).
+    fn deviation(&self, t: f64) -> [ZVec; 4] {
+        let x = (t / self.dt).max(0.0);
+        let k = x.floor();
+        let u = x - k;
+        let k = k as isize;
+        let (c0, c1, c2, c3) = (
+            self.point(k - 1),
+            self.point(k),
+            self.point(k + 1),
+            self.point(k + 2),
+        );
+        let v = 1.0 - u;
+        let h = self.dt;
+        let pos = (c0 * (v * v * v)
+            + c1 * (3.0 * u * u * u - 6.0 * u * u + 4.0)
+            + c2 * (-3.0 * u * u * u + 3.0 * u * u + 3.0 * u + 1.0)
+            + c3 * (u * u * u))
+            / 6.0;
+        let vel = (c0 * (-3.0 * v * v)
+            + c1 * (9.0 * u * u - 12.0 * u)
+            + c2 * (-9.0 * u * u + 6.0 * u + 3.0)
+            + c3 * (3.0 * u * u))
+            / (6.0 * h);
+        let acc = (c0 * v + c1 * (3.0 * u - 2.0) + c2 * (1.0 - 3.0 * u) + c3 * u) / (h * h);
+        let jerk = (c1 * 3.0 - c0 - c2 * 3.0 + c3) / (h * h * h);
+        [pos, vel, acc, jerk]
+    }
+}
+
+impl crate::trajectory::Trajectory for AvoidedTrajectory {
+    fn sample(&self, t: f64) -> ReferenceSample {
+        let t = if t.is_finite() {
+            t.clamp(0.0, self.duration)
+        } else {
+            0.0
+        };
+        let mut r = self.inner.sample(t.min(self.inner.duration()));
+        r.t = t;
+        if self.zero_around(t) {
+            // No deviation here: the nominal sample itself, bit for bit.
+            return r;
+        }
+        let [d, dd, ddd, dddd] = self.deviation(t);
+        let c = 3 + self.n;
+        for j in 0..c {
+            r.z[j] += d[j];
+            r.dz[j] += dd[j];
+            r.ddz[j] += ddd[j];
+            r.dddz[j] += dddd[j];
+        }
+        r
+    }
+    fn duration(&self) -> f64 {
+        self.duration
+    }
+    fn n_legs(&self) -> usize {
+        self.inner.n_legs()
+    }
+    fn timed_at(&self, t: f64) -> bool {
+        self.inner.timed_at(t.min(self.inner.duration()))
+    }
+    fn waypoint_near(&self, t: f64) -> Option<usize> {
+        self.inner.waypoint_near(t.min(self.inner.duration()))
+    }
+    fn stops(&self) -> Vec<(f64, f64)> {
+        // The inner stops where the deviation is zero around them (the B-spline's support:
+        // two knots either side); the end of the return loop is found by the time scaling.
+        self.inner
+            .stops()
+            .into_iter()
+            .filter(|&(a, b)| {
+                let lo = (a / self.dt).floor() as isize - 2;
+                let hi = (b / self.dt).ceil() as isize + 2;
+                (lo..=hi).all(|k| self.point(k).iter().all(|v| *v == 0.0))
+            })
+            .collect()
+    }
+    fn avoidance_at(&self, t: f64) -> Option<AvoidanceState> {
+        Some(self.state_at(t))
+    }
 }
 
 /// Analytic steering rate φ̇_i = (u × u̇)/|u|² and rolling speed |u_i| (m/s) of every wheel
@@ -1816,6 +2153,149 @@ mod tests {
         let (m, st) = av.step(&p, &r, 0.004);
         assert_eq!(m, r);
         assert!(!st.active && st.min_distance > 0.3);
+    }
+
+    #[test]
+    fn an_avoided_path_that_never_enters_a_field_is_the_nominal_bit_for_bit() {
+        use crate::trajectory::Trajectory;
+        let p = Platform::justin();
+        // ICR circling at 0.2 m: never inside a field.
+        let sc = Seed001Scenario::with(&p, 0.2, 1.0, 3.0);
+        let a = AvoidedTrajectory::plan(&p, Box::new(sc), AvoidanceConfig::default()).unwrap();
+        assert_eq!(a.duration().to_bits(), sc.duration().to_bits());
+        for k in 0..=3000 {
+            let t = sc.duration() * k as f64 / 3000.0;
+            assert_eq!(a.sample(t), sc.sample(t), "t = {t}");
+            assert!(!a.state_at(t).active);
+        }
+    }
+
+    #[test]
+    fn the_avoided_path_is_the_filters_output_c2_and_returns_to_the_goal() {
+        use crate::trajectory::Trajectory;
+        let p = Platform::justin();
+        let dt = p.dt();
+        let sc = Seed001Scenario::new(&p);
+        let cfg = AvoidanceConfig::default();
+        let a = AvoidedTrajectory::plan(&p, Box::new(sc), cfg).unwrap();
+        // The filter online, on the same nominal samples.
+        let mut online = Avoidance::new(&p, cfg);
+        let (mut max_dz, mut max_ddz, mut max_dev): (f64, f64, f64) = (0.0, 0.0, 0.0);
+        let (mut active, mut snaps, mut off_knots) = (0, 0, 0);
+        let knots = (a.duration() / dt).round() as usize;
+        for k in 0..=knots {
+            let t = k as f64 * dt;
+            let (m, st) = online.step(&p, &sc.sample(t.min(sc.duration())), dt);
+            let s = a.sample(t);
+            active += usize::from(st.active);
+            snaps += usize::from(st.deviating && online.is_zero());
+            assert_eq!(a.state_at(t).active, st.active, "t = {t}");
+            let mut off = false;
+            for j in 0..7 {
+                let acc = st.deviation_accel[j].abs();
+                // Value and rate at a knot: the filter's, to δ̈ Δt²/6 and δ̈ Δt/2 (and the
+                // settle tolerance where the filter snaps its deviation to zero).
+                let tol = cfg.settle_tolerance;
+                assert!(
+                    (s.z[j] - m.z[j]).abs() <= acc * dt * dt / 6.0 + tol,
+                    "z[{j}] at {t}: {} vs {}",
+                    s.z[j],
+                    m.z[j]
+                );
+                assert!(
+                    (s.dz[j] - m.dz[j]).abs() <= acc * dt / 2.0 + tol / dt,
+                    "ż[{j}] at {t}"
+                );
+                let e = (s.ddz[j] - m.ddz[j]).abs();
+                if e > 1e-6 {
+                    off = true;
+                } else {
+                    max_dz = max_dz.max((s.dz[j] - m.dz[j]).abs() - acc * dt / 2.0);
+                }
+                max_ddz = max_ddz.max(e);
+                max_dev = max_dev.max((s.z[j] - sc.sample(t.min(sc.duration())).z[j]).abs());
+            }
+            off_knots += usize::from(off);
+            // C²: no jump of z, ż, z̈ across the knot (the jerk is piecewise constant).
+            let (b, c) = (a.sample(t - 1e-7), a.sample(t + 1e-7));
+            for j in 0..7 {
+                let jerk = b.dddz[j].abs().max(c.dddz[j].abs());
+                assert!(
+                    (c.ddz[j] - b.ddz[j]).abs() <= jerk * 2e-7 + 1e-6,
+                    "z̈[{j}] at {t}"
+                );
+                assert!((c.dz[j] - b.dz[j]).abs() <= 1e-6, "ż[{j}] at {t}");
+            }
+        }
+        println!(
+            "seed 001 avoided: {active} active knots, largest deviation {max_dev:.4}, \
+             rate excess {max_dz:.2e}, {off_knots} knots whose acceleration is not the \
+             filter's ({snaps} snaps to zero; largest difference {max_ddz:.2e})"
+        );
+        assert!(active > 100, "the avoidance acts along seed 001: {active}");
+        assert!(max_dev > 0.02, "and moves the path: {max_dev}");
+        assert!(max_dz <= 1e-9, "{max_dz}");
+        // At a knot the B-spline's acceleration is the filter's δ̈, except next to the
+        // filter's snaps of δ to zero (the snap is a jump online; a blip of acceleration
+        // here, at most 2 × tolerance / Δt²).
+        assert!(off_knots <= 3 * snaps, "{off_knots} knots, {snaps} snaps");
+        assert!(
+            max_ddz <= 2.0 * cfg.settle_tolerance / (dt * dt),
+            "{max_ddz}"
+        );
+        // It ends at the nominal goal, at rest, the deviation returned to zero.
+        let end = a.sample(a.duration());
+        let goal = sc.sample(sc.duration());
+        assert!(a.duration() >= sc.duration());
+        for j in 0..7 {
+            assert!((end.z[j] - goal.z[j]).abs() < 1e-12, "z[{j}]");
+            assert!(end.dz[j] == 0.0 && end.ddz[j] == 0.0, "at rest: {end:?}");
+        }
+    }
+
+    #[test]
+    fn the_time_scaled_avoided_path_keeps_the_icr_where_the_avoidance_put_it() {
+        use crate::timescale::{ScaledTrajectory, TimeScaleConfig, VERIFY_TOLERANCE};
+        use crate::trajectory::Trajectory;
+        let p = Platform::justin();
+        let sc = Seed001Scenario::new(&p);
+        let avoided =
+            AvoidedTrajectory::plan(&p, Box::new(sc), AvoidanceConfig::default()).unwrap();
+        let reference =
+            AvoidedTrajectory::plan(&p, Box::new(sc), AvoidanceConfig::default()).unwrap();
+        let scaled =
+            ScaledTrajectory::plan(&p, Box::new(avoided), TimeScaleConfig::default()).unwrap();
+        let timing = scaled.timing().unwrap();
+        println!("seed 001 avoided and scaled: {timing:?}");
+        // Within every limit (the nominal asks 5× the steering acceleration limit).
+        assert!(timing.max_ratio <= 1.0 + VERIFY_TOLERANCE, "{timing:?}");
+        assert!(timing.min_scale < 1.0, "slowed somewhere: {timing:?}");
+        // The clock changes the timing, not the ICR: every ICR–wheel distance of the scaled
+        // reference is the avoided path's at the clock's path time.
+        let mut checked = 0;
+        for k in 0..=4000 {
+            let t = scaled.duration() * k as f64 / 4000.0;
+            let (tau, v, _, _) = scaled.clock(t);
+            if v < 1e-3 {
+                continue;
+            }
+            let ds = icr_wheel_distances(&p, &scaled.sample(t));
+            let da = icr_wheel_distances(&p, &reference.sample(tau));
+            for i in 0..4 {
+                if da[i].is_finite() && da[i] < 1.0 {
+                    assert!(
+                        (ds[i] - da[i]).abs() <= 1e-9 * (1.0 + da[i]),
+                        "t {t} wheel {i}"
+                    );
+                    checked += 1;
+                }
+            }
+            assert_eq!(
+                scaled.avoidance_at(t).unwrap().active,
+                reference.state_at(tau).active
+            );
+        }
+        assert!(checked > 1000, "{checked}");
     }
 
     /// Leg directions and legs of the Justin default, for [`avoid_twist`].

@@ -48,6 +48,9 @@ pub enum Rejection {
         /// Legs on the platform.
         expected: usize,
     },
+    /// Leg targets for a platform whose wheels have no legs (a fixed footprint).
+    #[error("command gives leg targets but the platform has no legs (every wheel is mounted at a fixed `lambda`): send motion commands without legs")]
+    NoLegs,
     /// A leg target outside the leg's range.
     #[error("command leg {} target {value} m is outside the leg's range [{min}, {max}] m", leg + 1)]
     LegRange {
@@ -104,6 +107,9 @@ pub fn check_twist(p: &Platform, t: &Twist) -> Result<(), Rejection> {
 
 /// Checks leg targets; returns them clamped into the legs' ranges.
 pub fn check_legs(p: &Platform, l: &LegTargets) -> Result<LegTargets, Rejection> {
+    if !p.has_legs() {
+        return Err(Rejection::NoLegs);
+    }
     let n = p.n().min(MAX_WHEELS);
     if l.n != n {
         return Err(Rejection::LegCount {
@@ -188,6 +194,15 @@ mod tests {
         let e = check_motion(&p, &bad).unwrap_err();
         assert!(matches!(e, Rejection::LegRange { leg: 1, .. }));
         assert!(e.to_string().contains("leg 2"), "{e}");
+        // A fixed footprint refuses leg targets whatever they are; motion without legs is fine.
+        let fixed = Platform::three_wheel();
+        let mut m = ok;
+        m.legs = Some(LegTargets::from_slice(&[0.3, 0.3, 0.3]));
+        let e = check_motion(&fixed, &m).unwrap_err();
+        assert_eq!(e, Rejection::NoLegs);
+        assert!(e.to_string().contains("no legs"), "{e}");
+        m.legs = None;
+        assert!(check_motion(&fixed, &m).is_ok());
         bad.legs = Some(LegTargets::from_slice(&[0.4, f64::NAN, 0.4, 0.4]));
         assert!(matches!(
             check_motion(&p, &bad),

@@ -244,7 +244,8 @@ pub fn steer_weights(p: &Platform, r: &ReferenceSample) -> [f64; MAX_WHEELS] {
 /// Steering-rate command of a held wheel ([`held_wheels`]): the reference's steering rate
 /// plus `steer_kp` × the angle error.
 pub fn held_steer_rate(p: &Platform, r: &ReferenceSample, i: usize, phi_meas: f64) -> f64 {
-    let e = angle::diff(r.steer.angle[i], phi_meas);
+    let range = p.wheels.get(i).and_then(angle::SteerRange::of);
+    let e = angle::steer_error(range, r.steer.angle[i], phi_meas);
     let v = r.steer.rate[i] + p.gains.steer_kp * if e.is_finite() { e } else { 0.0 };
     if v.is_finite() {
         v
@@ -304,8 +305,29 @@ pub fn alignment_command(
         let Some(target) = target else {
             continue;
         };
+        let w = &p.wheels[i];
+        if w.off_centred() {
+            // An off-centred wheel is never steered at rest: it would scrub its contact
+            // point sideways (crate::model, "Off-centred steering"); it turns as it rolls.
+            continue;
+        }
         let phi = m.wheels[i].steer_angle;
-        let err = angle::diff(target, phi);
+        let range = angle::SteerRange::of(w);
+        let err = match range {
+            None => angle::diff(target, phi),
+            // Within a range: the turn of the target (or, with no steering reference, of the
+            // opposite direction, rolling backwards) reachable within it, the nearer one.
+            Some(_) if reference.steer.valid => angle::steer_error(range, target, phi),
+            Some(_) => {
+                let fwd = angle::steer_error(range, target, phi);
+                let back = angle::steer_error(range, target + std::f64::consts::PI, phi);
+                if back.abs() < fwd.abs() {
+                    back
+                } else {
+                    fwd
+                }
+            }
+        };
         if !err.is_finite() {
             continue;
         }
@@ -658,7 +680,8 @@ impl DflController {
             let rate = if held[j] {
                 held_steer_rate(p, r, j, phis[j])
             } else {
-                let own = coordinated_steer(u0, du, phis[j], g.steer_kp).0;
+                let range = angle::SteerRange::of(&p.wheels[j]);
+                let own = coordinated_steer_in(range, u0, du, phis[j], g.steer_kp).0;
                 let wj = weight[j];
                 if wj < 1.0 {
                     wj * own + (1.0 - wj) * held_steer_rate(p, r, j, phis[j])
@@ -704,6 +727,34 @@ pub fn coordinated_steer(u: [f64; 2], du: [f64; 2], phi_meas: f64, kp: f64) -> (
         speed = -speed;
     }
     (w.steer_rate + kp * angle::diff(target, phi_meas), speed)
+}
+
+/// [`coordinated_steer`] for a wheel with a steering range: of the two branches the one
+/// whose turn inside the range is nearer the measured angle (an endless wheel: exactly
+/// [`coordinated_steer`]).
+pub fn coordinated_steer_in(
+    range: Option<angle::SteerRange>,
+    u: [f64; 2],
+    du: [f64; 2],
+    phi_meas: f64,
+    kp: f64,
+) -> (f64, f64) {
+    let Some(rg) = range else {
+        return coordinated_steer(u, du, phi_meas, kp);
+    };
+    let sp = u[0].hypot(u[1]);
+    if sp.is_nan() || sp < REST_SPEED {
+        return (0.0, 0.0);
+    }
+    let w = steer_from_velocity(u, du);
+    let fwd = angle::steer_error(Some(rg), w.steer_angle, phi_meas);
+    let back = angle::steer_error(Some(rg), w.steer_angle + std::f64::consts::PI, phi_meas);
+    let (e, speed) = if back.abs() < fwd.abs() {
+        (back, -w.rolling_speed)
+    } else {
+        (fwd, w.rolling_speed)
+    };
+    (w.steer_rate + kp * e, speed)
 }
 
 impl TrackingController for DflController {

@@ -28,6 +28,18 @@
 //!    `desaturateWheelSpeeds`): if any wheel spin, steering rate or leg rate exceeds its
 //!    limit, the whole command is multiplied by 1/ratio so its direction is kept.
 //!
+//! 8. Off-centred wheels (caster offset d > 0, [`crate::model`], "Off-centred steering") are
+//!    commanded by the slip-free caster law at their measured angle, v_W = u·h, φ̇ = (u·h⊥)/d
+//!    − θ̇ ([`crate::model::caster_inverse`]): a wheel rolling forward (trailing) turns towards
+//!    its direction of travel by itself and is never steered at rest. A wheel that points
+//!    backwards along its direction of travel (after a reversal) rolls backwards as a
+//!    leading caster, its steering held on the leading angle ψ + π + lag by `steer_kp`
+//!    feedback (the caster law would swing it round), until it is more than
+//!    [`LEAD_RELEASE`] off it.
+//! 9. A wheel with a steering range ([`crate::angle::SteerRange`]) steers to the turn of its
+//!    target inside the range ([`crate::angle::steer_error`]: the long way round when the
+//!    short one crosses a stop), and the branch decision compares errors within the ranges.
+//!
 //! `finished` is raised once the reference, after having moved, is at rest (all reference contact speeds below
 //! 1e-6 m/s) and the pose/leg errors are below 0.1 mm / 1e-4 rad.
 
@@ -46,10 +58,58 @@ use std::f64::consts::{FRAC_PI_2, PI};
 /// Extra angle (rad) beyond π/2 before the platform-wide ±π branch is switched.
 pub const FLIP_HYSTERESIS: f64 = 0.3;
 
+/// An off-centred wheel within this angle (rad) of its leading angle (pointing backwards
+/// along its direction of travel) rolls backwards, held there by its steering motor.
+pub const LEAD_ENTRY: f64 = 0.35;
+
+/// A leading off-centred wheel further than this (rad) from its leading angle is released
+/// to the caster law (it swings round to trailing).
+pub const LEAD_RELEASE: f64 = 0.6;
+
+/// Steering command of an off-centred wheel (module docs, point 8): (steering rate, rolling
+/// speed along the wheel) for the commanded steering-axis velocity `u` (its derivative
+/// `du`) and body rate `omega`, at the measured angle `phi`; `leading` is the wheel's mode
+/// (updated). Near a steering stop the rate towards it fades with the distance left.
+#[allow(clippy::too_many_arguments)]
+pub fn caster_command(
+    w: &crate::platform::WheelConfig,
+    u: [f64; 2],
+    du: [f64; 2],
+    omega: f64,
+    phi: f64,
+    kp: f64,
+    leading: &mut bool,
+) -> (f64, f64) {
+    let d = w.caster_offset;
+    let sp = u[0].hypot(u[1]);
+    let (roll, mut rate) = crate::model::caster_inverse(u, phi, omega, d);
+    if sp >= REST_SPEED && sp.is_finite() {
+        let psi = steer_from_velocity(u, du);
+        let lag = crate::model::caster_lag(sp, psi.steer_rate + omega, d, true);
+        let e = angle::diff(psi.steer_angle + PI + lag, phi);
+        *leading = e.abs() < if *leading { LEAD_RELEASE } else { LEAD_ENTRY };
+        if *leading {
+            rate = psi.steer_rate + kp * e;
+        }
+    } else {
+        *leading = false;
+    }
+    if let Some(r) = angle::SteerRange::of(w) {
+        // Never into a stop: the rate towards it is at most kp × the angle left.
+        if rate > 0.0 {
+            rate = rate.min(kp * (r.max - phi).max(0.0));
+        } else {
+            rate = rate.max(-kp * (phi - r.min).max(0.0));
+        }
+    }
+    (rate, roll)
+}
+
 /// Controller 2 (module docs).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct KinematicController {
     flip: bool,
+    leading: [bool; MAX_WHEELS],
     prev: [f64; 3 + MAX_WHEELS],
     has_prev: bool,
     started: bool,
@@ -62,6 +122,7 @@ impl KinematicController {
         let _ = p;
         Self {
             flip: false,
+            leading: [false; MAX_WHEELS],
             prev: [0.0; 3 + MAX_WHEELS],
             has_prev: false,
             started: false,
@@ -80,6 +141,7 @@ impl KinematicController {
     pub fn reset(&mut self, p: &Platform, reference: &ReferenceSample) {
         let _ = (p, reference);
         self.flip = false;
+        self.leading = [false; MAX_WHEELS];
         self.has_prev = false;
         self.started = false;
     }
@@ -159,6 +221,7 @@ impl KinematicController {
         let mut fastest = (0usize, -1.0);
         let held = crate::dfl::held_wheels(p, r);
         let weight = crate::dfl::steer_weights(p, r);
+        let mut caster: [Option<(f64, f64)>; MAX_WHEELS] = [None; MAX_WHEELS];
         for i in 0..n {
             let leg = m.wheels[i].leg;
             let u = wheel_velocity_body(p, i, pose.theta, leg, &tw, cmdv[3 + i]);
@@ -176,6 +239,18 @@ impl KinematicController {
             min_speed = min_speed.min(sp);
             if sp > fastest.1 {
                 fastest = (i, sp);
+            }
+            if p.wheels[i].off_centred() {
+                caster[i] = Some(caster_command(
+                    &p.wheels[i],
+                    u,
+                    du,
+                    cmdv[2],
+                    m.wheels[i].steer_angle,
+                    g.steer_kp,
+                    &mut self.leading[i],
+                ));
+                continue;
             }
             if held[i] {
                 // Steered by the reference's angle; rolls its share of the commanded motion
@@ -201,7 +276,14 @@ impl KinematicController {
             let off = if flip { PI } else { 0.0 };
             (0..n)
                 .filter(|&i| moving[i])
-                .map(|i| angle::diff(target[i] + off, m.wheels[i].steer_angle).abs())
+                .map(|i| {
+                    angle::steer_error(
+                        angle::SteerRange::of(&p.wheels[i]),
+                        target[i] + off,
+                        m.wheels[i].steer_angle,
+                    )
+                    .abs()
+                })
                 .fold(0.0, f64::max)
         };
         let cur = worst(self.flip);
@@ -211,7 +293,13 @@ impl KinematicController {
         let (off0, sign0) = if self.flip { (PI, -1.0) } else { (0.0, 1.0) };
         // 5.–6. steering and rolling
         for i in 0..n {
+            if let Some((rate, roll)) = caster[i] {
+                out.command.wheels[i].steer_rate = rate;
+                out.command.wheels[i].wheel_speed = roll / p.wheel_radius;
+                continue;
+            }
             let phi = m.wheels[i].steer_angle;
+            let range = angle::SteerRange::of(&p.wheels[i]);
             // With a steering reference each wheel rolls on the reference's branch (a wheel
             // whose velocity passed through zero on a line rolls backwards: its own branch).
             let (off, sign) = if r.steer.valid && moving[i] {
@@ -226,7 +314,7 @@ impl KinematicController {
             let (rate, roll) = if held[i] {
                 (crate::dfl::held_steer_rate(p, r, i, phi), speed[i])
             } else if moving[i] {
-                let e = angle::diff(target[i] + off, phi);
+                let e = angle::steer_error(range, target[i] + off, phi);
                 let scale = if e.abs() < FRAC_PI_2 { e.cos() } else { 0.0 };
                 let own = ff[i] + g.steer_kp * e;
                 // Near the hold speed, blended with the reference's angle (dfl::steer_weights).

@@ -17,6 +17,12 @@
 //!
 //! The native link is exactly the code the cycle core had before the second profile: the
 //! same frames, in the same order.
+//!
+//! Both profiles apply each wheel's motor polarity and steer→drive coupling here, between
+//! the joints the controller speaks of and the motors on the wire ([`Wiring`]): a mirrored
+//! motor's setpoints and readings change sign, and a coupled module's rolling motor is told
+//! ω − c·φ̇ (the steering turns the wheel by c·φ̇ on its own) and its reading gets c·φ̇ back.
+//! A platform whose motors are all positive and uncoupled passes every value untouched.
 
 use crate::angle;
 use crate::platform::{Platform, Protocol};
@@ -103,6 +109,81 @@ pub enum WheelFault {
     },
 }
 
+/// Each wheel's motor polarity and steer→drive coupling, applied on the wire side
+/// (module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Wiring {
+    drive: [f64; MAX_WHEELS],
+    steer: [f64; MAX_WHEELS],
+    coupling: [f64; MAX_WHEELS],
+    /// Latest steering rate per wheel (joint side), for the coupling of rolling readings.
+    last_steer_rate: [f64; MAX_WHEELS],
+    /// Some wheel is mirrored or coupled.
+    active: bool,
+}
+
+impl Wiring {
+    /// The platform's wiring.
+    pub fn new(p: &Platform) -> Self {
+        let mut w = Self {
+            drive: [1.0; MAX_WHEELS],
+            steer: [1.0; MAX_WHEELS],
+            coupling: [0.0; MAX_WHEELS],
+            last_steer_rate: [0.0; MAX_WHEELS],
+            active: false,
+        };
+        for (i, c) in p.wheels.iter().enumerate().take(MAX_WHEELS) {
+            w.drive[i] = f64::from(c.drive_polarity);
+            w.steer[i] = f64::from(c.steer_polarity);
+            w.coupling[i] = c.coupling;
+            w.active |= c.drive_polarity != 1 || c.steer_polarity != 1 || c.coupling != 0.0;
+        }
+        w
+    }
+
+    /// A joint setpoint as the motors must be told it.
+    pub fn to_motors(&self, i: usize, sp: &Setpoint) -> Setpoint {
+        if !self.active || i >= MAX_WHEELS {
+            return *sp;
+        }
+        Setpoint {
+            wheel_speed: self.drive[i] * (sp.wheel_speed - self.coupling[i] * sp.steer_rate),
+            steer_rate: self.steer[i] * sp.steer_rate,
+            flags: sp.flags,
+        }
+    }
+
+    /// A motor reading as the joint's.
+    pub fn to_joints(&mut self, u: Update) -> Update {
+        if !self.active {
+            return u;
+        }
+        match u {
+            Update::Steer {
+                wheel,
+                angle: a,
+                rate,
+                seq,
+            } if wheel < MAX_WHEELS => {
+                let rate = self.steer[wheel] * rate;
+                self.last_steer_rate[wheel] = rate;
+                Update::Steer {
+                    wheel,
+                    angle: angle::wrap(self.steer[wheel] * a),
+                    rate,
+                    seq,
+                }
+            }
+            Update::Drive { wheel, speed } if wheel < MAX_WHEELS => Update::Drive {
+                wheel,
+                speed: self.drive[wheel] * speed
+                    + self.coupling[wheel] * self.last_steer_rate[wheel],
+            },
+            other => other,
+        }
+    }
+}
+
 /// The native profile's link: the code the cycle core always had.
 pub struct NativeLink {
     nodes: [u8; MAX_WHEELS],
@@ -114,6 +195,7 @@ pub struct NativeLink {
     state: [Option<ModuleState>; MAX_WHEELS],
     fault_code: [u8; MAX_WHEELS],
     cycle: u64,
+    wiring: Wiring,
 }
 
 /// The CiA 402 profile's link: the driver's sans-IO master, plus the receive statistics
@@ -122,6 +204,8 @@ pub struct Cia402Link {
     master: Master,
     stats: RxStats,
     n: usize,
+    wiring: Wiring,
+    motors: [Setpoint; MAX_WHEELS],
 }
 
 /// The link of a cycle core.
@@ -169,12 +253,15 @@ impl Link {
                     state: [None; MAX_WHEELS],
                     fault_code: [0; MAX_WHEELS],
                     cycle: 0,
+                    wiring: Wiring::new(p),
                 })
             }
             Protocol::Cia402 => Link::Cia402(Cia402Link {
                 master: Master::new(&p.cia402(), p.dt()),
                 stats: RxStats::default(),
                 n,
+                wiring: Wiring::new(p),
+                motors: [Setpoint::default(); MAX_WHEELS],
             }),
         }
     }
@@ -236,16 +323,16 @@ impl Link {
                 Ok(match msg.payload {
                     Payload::FeedbackA(a) => Updates {
                         items: [
-                            Some(Update::Steer {
+                            Some(l.wiring.to_joints(Update::Steer {
                                 wheel: w,
                                 angle: a.steer_angle,
                                 rate: a.steer_rate,
                                 seq: msg.counter,
-                            }),
-                            Some(Update::Drive {
+                            })),
+                            Some(l.wiring.to_joints(Update::Drive {
                                 wheel: w,
                                 speed: a.wheel_speed,
-                            }),
+                            })),
                         ],
                     },
                     Payload::FeedbackB(b) => Updates::one(Update::Leg {
@@ -274,14 +361,14 @@ impl Link {
                                 angle: a,
                                 rate,
                                 seq,
-                            } => Updates::one(Update::Steer {
+                            } => Updates::one(l.wiring.to_joints(Update::Steer {
                                 wheel,
                                 angle: angle::wrap(a),
                                 rate,
                                 seq,
-                            }),
+                            })),
                             Event::Drive { wheel, speed, .. } => {
-                                Updates::one(Update::Drive { wheel, speed })
+                                Updates::one(l.wiring.to_joints(Update::Drive { wheel, speed }))
                             }
                             Event::Leg { wheel, leg, rate } => {
                                 Updates::one(Update::Leg { wheel, leg, rate })
@@ -307,6 +394,7 @@ impl Link {
         match self {
             Link::Native(l) => {
                 for (i, sp) in setpoints.iter().enumerate().take(l.n) {
+                    let sp = &l.wiring.to_motors(i, sp);
                     let msg = Message {
                         node: l.nodes[i],
                         counter: l.setpoint_counter[i],
@@ -340,7 +428,17 @@ impl Link {
                     out.push(frame);
                 }
             }
-            Link::Cia402(l) => l.master.finish_cycle(t, setpoints, out),
+            Link::Cia402(l) => {
+                if l.wiring.active {
+                    let k = setpoints.len().min(MAX_WHEELS);
+                    for (i, sp) in setpoints.iter().enumerate().take(k) {
+                        l.motors[i] = l.wiring.to_motors(i, sp);
+                    }
+                    l.master.finish_cycle(t, &l.motors[..k], out)
+                } else {
+                    l.master.finish_cycle(t, setpoints, out)
+                }
+            }
         }
     }
 
@@ -460,5 +558,354 @@ impl Link {
                         .any(|d| d.boot != BootState::Started)
             }
         }
+    }
+}
+
+/// Most buses: [`crate::platform::MAX_BUSES`].
+const NB: usize = crate::platform::MAX_BUSES;
+
+/// The links of a platform, one per bus (`wheels[i].bus`), presented with the platform's
+/// wheel indices: each bus has its own SYNC, its own setpoints and (CiA 402) its own master,
+/// all on the one cycle clock. A platform on one bus has one link, used exactly as before.
+pub struct Buses {
+    links: Vec<Link>,
+    /// Per bus, the platform's index of each of its wheels (bus order).
+    global: [[usize; MAX_WHEELS]; NB],
+    /// Per platform wheel, its bus and its index there.
+    local: [(usize, usize); MAX_WHEELS],
+    /// Per CAN node (0..=127), the bus its device is on.
+    node_bus: [u8; 128],
+    n: usize,
+    sum: RxStats,
+    scratch: [Setpoint; MAX_WHEELS],
+}
+
+impl Buses {
+    /// The links of the platform (which must be valid).
+    pub fn new(p: &Platform, counter_policy: CounterPolicy) -> Self {
+        let nb = p.buses();
+        let mut global = [[0usize; MAX_WHEELS]; NB];
+        let mut local = [(0usize, 0usize); MAX_WHEELS];
+        let mut node_bus = [0u8; 128];
+        let mut links = Vec::with_capacity(nb);
+        for (b, g) in global.iter_mut().enumerate().take(nb) {
+            let sub = if nb == 1 { p.clone() } else { p.bus_subset(b) };
+            for (k, i) in p.wheels_on_bus(b).enumerate().take(MAX_WHEELS) {
+                g[k] = i;
+                if i < MAX_WHEELS {
+                    local[i] = (b, k);
+                }
+            }
+            let link = Link::new(&sub, counter_policy);
+            for k in 0..sub.n().min(MAX_WHEELS) {
+                for r in [Role::Drive, Role::Steer, Role::Leg] {
+                    let node = link.stream_node(k, r);
+                    if node != 0 {
+                        node_bus[usize::from(node & 0x7F)] = b as u8;
+                    }
+                }
+            }
+            links.push(link);
+        }
+        Self {
+            links,
+            global,
+            local,
+            node_bus,
+            n: p.n().min(MAX_WHEELS),
+            sum: RxStats::default(),
+            scratch: [Setpoint::default(); MAX_WHEELS],
+        }
+    }
+
+    /// Number of buses.
+    pub fn count(&self) -> usize {
+        self.links.len()
+    }
+
+    /// Bus `b`'s link.
+    pub fn link(&self, b: usize) -> Option<&Link> {
+        self.links.get(b)
+    }
+
+    /// The bus a device's node is on (0 for nodes no wheel uses).
+    pub fn bus_of_node(&self, node: u8) -> usize {
+        usize::from(self.node_bus[usize::from(node & 0x7F)])
+    }
+
+    /// The bus of wheel `i`.
+    pub fn bus_of_wheel(&self, i: usize) -> usize {
+        self.local.get(i).map_or(0, |l| l.0)
+    }
+
+    fn at(&self, i: usize) -> Option<(&Link, usize)> {
+        if i >= self.n {
+            return None;
+        }
+        let (b, k) = self.local[i];
+        self.links.get(b).map(|l| (l, k))
+    }
+
+    /// [`Link::wheel_node`] of platform wheel `i`.
+    pub fn wheel_node(&self, i: usize) -> u8 {
+        self.at(i).map_or(0, |(l, k)| l.wheel_node(k))
+    }
+
+    /// [`Link::stream_node`] of platform wheel `i`.
+    pub fn stream_node(&self, i: usize, role: Role) -> u8 {
+        self.at(i).map_or(0, |(l, k)| l.stream_node(k, role))
+    }
+
+    /// Frames of the start of a cycle, bus `b`'s into `outs[b]` (the last buffer when fewer
+    /// are given: every bus on one medium).
+    pub fn start_cycle(&mut self, cycle: u64, t: f64, outs: &mut [FrameBuf]) {
+        let last = outs.len().saturating_sub(1);
+        for (b, l) in self.links.iter_mut().enumerate() {
+            if let Some(out) = outs.get_mut(b.min(last)) {
+                l.start_cycle(cycle, t, out);
+            }
+        }
+    }
+
+    /// [`Link::on_frame`] for a frame that arrived on bus `bus`, its wheels as the
+    /// platform's. `None` for `bus`: the bus the frame's node is on.
+    pub fn on_frame(
+        &mut self,
+        bus: Option<usize>,
+        frame: &CanFrame,
+        t: f64,
+    ) -> Result<Updates, &'static str> {
+        let b = bus.unwrap_or_else(|| self.bus_of_node((frame.id() & 0x7F) as u8));
+        let Some(l) = self.links.get_mut(b) else {
+            return Err("unknown_bus");
+        };
+        let r = l.on_frame(frame, t);
+        if self.links.len() > 1 {
+            self.sum = RxStats::default();
+            for l in &self.links {
+                let s = l.rx_stats();
+                self.sum.accepted += s.accepted;
+                self.sum.bad_crc += s.bad_crc;
+                self.sum.wrong_dlc += s.wrong_dlc;
+                self.sum.unknown_id += s.unknown_id;
+                self.sum.out_of_range += s.out_of_range;
+                self.sum.repeated += s.repeated;
+                self.sum.skipped += s.skipped;
+                self.sum.lost += s.lost;
+                self.sum.other += s.other;
+            }
+        }
+        let mut u = r?;
+        let g = &self.global[b];
+        for it in u.items.iter_mut().flatten() {
+            match it {
+                Update::Steer { wheel, .. }
+                | Update::Drive { wheel, .. }
+                | Update::Leg { wheel, .. } => {
+                    *wheel = g.get(*wheel).copied().unwrap_or(usize::MAX);
+                }
+            }
+        }
+        Ok(u)
+    }
+
+    /// The setpoint frames at the end of a cycle (`setpoints` in platform wheel order),
+    /// bus `b`'s into `outs[b]` (as [`Buses::start_cycle`]).
+    pub fn finish_cycle(&mut self, t: f64, setpoints: &[Setpoint], outs: &mut [FrameBuf]) {
+        let last = outs.len().saturating_sub(1);
+        if self.links.len() == 1 {
+            if let (Some(l), Some(out)) = (self.links.first_mut(), outs.get_mut(0)) {
+                l.finish_cycle(t, setpoints, out);
+            }
+            return;
+        }
+        for (b, l) in self.links.iter_mut().enumerate() {
+            let mut k = 0;
+            for (i, sp) in setpoints.iter().enumerate().take(self.n) {
+                if self.local[i].0 == b && k < MAX_WHEELS {
+                    self.scratch[k] = *sp;
+                    k += 1;
+                }
+            }
+            if let Some(out) = outs.get_mut(b.min(last)) {
+                l.finish_cycle(t, &self.scratch[..k], out);
+            }
+        }
+    }
+
+    /// Every bus's devices are ready.
+    pub fn ready(&self) -> bool {
+        self.links.iter().all(Link::ready)
+    }
+
+    /// The first bus's boot failure, its wheel as the platform's.
+    pub fn boot_failure(&self) -> Option<(usize, u8, Role, DeviceFault)> {
+        self.links.iter().enumerate().find_map(|(b, l)| {
+            l.boot_failure().map(|(w, node, role, f)| {
+                (self.global[b].get(w).copied().unwrap_or(w), node, role, f)
+            })
+        })
+    }
+
+    /// [`Link::wheel_fault`] of platform wheel `i`.
+    pub fn wheel_fault(&self, i: usize) -> Option<WheelFault> {
+        self.at(i).and_then(|(l, k)| l.wheel_fault(k))
+    }
+
+    /// [`Link::wheel_state`] of platform wheel `i`.
+    pub fn wheel_state(&self, i: usize) -> Option<ModuleState> {
+        self.at(i).and_then(|(l, k)| l.wheel_state(k))
+    }
+
+    /// [`Link::rearm`] on every bus.
+    pub fn rearm(&mut self, t: f64) {
+        for l in &mut self.links {
+            l.rearm(t);
+        }
+    }
+
+    /// [`Link::release`] on every bus (as [`Buses::start_cycle`]).
+    pub fn release(&mut self, outs: &mut [FrameBuf]) {
+        let last = outs.len().saturating_sub(1);
+        for (b, l) in self.links.iter_mut().enumerate() {
+            if let Some(out) = outs.get_mut(b.min(last)) {
+                l.release(out);
+            }
+        }
+    }
+
+    /// The most cycles any bus needs to disable its drives.
+    pub fn disable_lead_cycles(&self) -> u32 {
+        self.links
+            .iter()
+            .map(Link::disable_lead_cycles)
+            .max()
+            .unwrap_or(1)
+    }
+
+    /// Receive statistics of every bus together.
+    pub fn rx_stats(&self) -> &RxStats {
+        match self.links.as_slice() {
+            [one] => one.rx_stats(),
+            _ => &self.sum,
+        }
+    }
+
+    /// Whether bus 0's link is the CiA 402 profile's.
+    pub fn is_cia402(&self) -> bool {
+        matches!(self.links.first(), Some(Link::Cia402(_)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rollbase_driver::codec::{decode, FeedbackA};
+
+    #[test]
+    fn wiring_undoes_polarity_and_coupling_both_ways() {
+        let mut p = Platform::three_wheel();
+        p.wheels[2].coupling = 0.5;
+        let mut w = Wiring::new(&p);
+        let sp = Setpoint {
+            wheel_speed: 4.0,
+            steer_rate: 2.0,
+            flags: SetpointFlags::default(),
+        };
+        // Wheel 0: plain; wheel 1: both motors mirrored; wheel 2: coupled.
+        assert_eq!(w.to_motors(0, &sp), sp);
+        let m1 = w.to_motors(1, &sp);
+        assert_eq!((m1.wheel_speed, m1.steer_rate), (-4.0, -2.0));
+        let m2 = w.to_motors(2, &sp);
+        assert_eq!((m2.wheel_speed, m2.steer_rate), (3.0, 2.0));
+        // The readings of those motors are the joints' again.
+        for (i, m) in [(1, m1), (2, m2)] {
+            let Update::Steer { angle, rate, .. } = w.to_joints(Update::Steer {
+                wheel: i,
+                angle: if i == 1 { -0.3 } else { 0.3 },
+                rate: m.steer_rate,
+                seq: 0,
+            }) else {
+                unreachable!()
+            };
+            assert!((angle - 0.3).abs() < 1e-12 && (rate - 2.0).abs() < 1e-12);
+            let Update::Drive { speed, .. } = w.to_joints(Update::Drive {
+                wheel: i,
+                speed: m.wheel_speed,
+            }) else {
+                unreachable!()
+            };
+            assert!((speed - 4.0).abs() < 1e-12, "wheel {i}: {speed}");
+        }
+        // Justin's wiring passes everything untouched.
+        let j = Wiring::new(&Platform::justin());
+        assert!(!j.active);
+        assert_eq!(j.to_motors(1, &sp), sp);
+    }
+
+    #[test]
+    fn two_buses_each_get_their_sync_and_their_wheels() {
+        let p = Platform::six_wheel();
+        let mut b = Buses::new(&p, CounterPolicy::default());
+        assert_eq!(b.count(), 2);
+        let mut outs = [FrameBuf::new(), FrameBuf::new()];
+        b.start_cycle(0, 0.0, &mut outs);
+        for o in &outs {
+            assert_eq!(o.as_slice()[0].id(), 0x080, "each bus starts with its SYNC");
+        }
+        let sps: Vec<Setpoint> = (0..6)
+            .map(|i| Setpoint {
+                wheel_speed: f64::from(i as u8),
+                ..Setpoint::default()
+            })
+            .collect();
+        for o in &mut outs {
+            o.clear();
+        }
+        b.finish_cycle(0.001, &sps, &mut outs);
+        for (bus, o) in outs.iter().enumerate() {
+            let nodes: Vec<u8> = o
+                .as_slice()
+                .iter()
+                .map(|f| decode(f).expect("a setpoint").node)
+                .collect();
+            let want: Vec<u8> = (1..=6u8).filter(|n| (n - 1) / 3 == bus as u8).collect();
+            assert_eq!(nodes, want, "bus {bus}");
+            for f in o.as_slice() {
+                let m = decode(f).unwrap();
+                let Payload::Setpoint(s) = m.payload else {
+                    panic!("{m:?}")
+                };
+                assert!((s.wheel_speed - f64::from(m.node - 1)).abs() < 1e-3);
+            }
+        }
+        // Feedback from node 5 (bus 1's second wheel) is platform wheel 4's.
+        for (counter, bus) in [(0, Some(1)), (1, None)] {
+            let fb = encode(&Message {
+                node: 5,
+                counter,
+                payload: Payload::FeedbackA(FeedbackA {
+                    steer_angle: 0.25,
+                    ..FeedbackA::default()
+                }),
+            })
+            .unwrap();
+            let u = b.on_frame(bus, &fb, 0.002).unwrap();
+            let wheels: Vec<usize> = u
+                .items
+                .iter()
+                .flatten()
+                .map(|it| match it {
+                    Update::Steer { wheel, .. }
+                    | Update::Drive { wheel, .. }
+                    | Update::Leg { wheel, .. } => *wheel,
+                })
+                .collect();
+            assert_eq!(wheels, vec![4, 4]);
+        }
+        assert_eq!(
+            (b.bus_of_wheel(4), b.bus_of_node(5), b.wheel_node(4)),
+            (1, 1, 5)
+        );
     }
 }

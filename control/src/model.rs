@@ -23,6 +23,44 @@
 //! needs no finite differences; it is undefined only where |u_i| = 0 (singularity A,
 //! seed 000 Sect. III-A: the ICR lies on the wheel), which [`wheel_setpoints`] reports
 //! as [`KinematicsError::Singular`] instead of returning NaN.
+//!
+//! # Off-centred steering (caster offset d > 0)
+//!
+//! Seed 003's off-centred orientable wheel: the wheel's contact point trails its steering
+//! axis by d along the wheel plane (`wheels[i].caster_offset`; MPO-700-like modules,
+//! d = 45 mm). With h = (cos φ, sin φ) and h⊥ = J h = (−sin φ, cos φ), the contact point is
+//!
+//! ```text
+//! C_i = P_i − d h
+//! ```
+//!
+//! and u_i above is now the velocity of the steering axis. Differentiating the contact
+//! point's world position p + R(θ) C_i (d/dt R(θ)x = R(θ)(θ̇ J x + ẋ), ḣ = φ̇ h⊥), its body
+//! velocity is u_i − d (θ̇ + φ̇) h⊥. Rolling without slip it is v_W h, so
+//!
+//! ```text
+//! u_i = v_W h + d (θ̇ + φ̇) h⊥          (seed 003's caster constraint, C₂c = d)
+//! v_W = u_i · h,   φ̇ = (u_i · h⊥)/d − θ̇   ([`caster_inverse`])
+//! ```
+//!
+//! The 2 × 2 map (v_W, φ̇ + θ̇) ↦ u_i is [h, d h⊥], of determinant d: for d > 0 the steering
+//! axis can move in any direction whatever the wheel's angle, there is no singularity A,
+//! and no wheel ever needs to be steered before it rolls. The price is that the steering is
+//! no longer free: at rest (u_i = 0, θ̇ = 0) the only slip-free steering rate is 0. Steering
+//! a wheel at rest drags its contact point sideways along a circle of radius d (a 90° turn
+//! scrubs the tyre 71 mm at d = 45 mm) and pushes the body. So off-centred wheels are never
+//! steered at rest: they turn as the platform moves, as a caster does (trailing, φ → ψ =
+//! atan2(u_i), with the time constant d/|u_i|), and the steering rate this takes is
+//! |u_i| sin|φ − ψ| / d (at most |u_i|/d, 13 rad/s at 0.6 m/s and d = 45 mm), which bounds
+//! how fast the platform may move while a wheel is far from its direction of travel.
+//!
+//! Following a direction of travel ψ(t) that turns, the slip-free angle lags it: with
+//! φ = ψ + ε (trailing, rolling forward) the constraint gives ψ̇ + ε̇ = −|u| sin ε / d − θ̇,
+//! so at a steady lag sin ε = −d (ψ̇ + θ̇)/|u| ([`caster_lag`]); rolling backwards (φ = ψ +
+//! π + ε, a leading caster) sin ε = +d (ψ̇ + θ̇)/|u|. A trailing caster settles on its lag by
+//! itself (stable); a leading one would swing round, so a wheel rolls backwards only while
+//! its steering motor holds it on the leading angle (after a reversal, where it already
+//! points that way).
 
 // Index loops over parallel per-wheel arrays read better than zipped iterators here.
 #![allow(clippy::needless_range_loop)]
@@ -203,6 +241,51 @@ pub fn steer_from_velocity(u: [f64; 2], du: [f64; 2]) -> WheelSetpoint {
         } else {
             0.0
         },
+    }
+}
+
+/// Off-centred steering ([module docs](self)): the rolling speed v_W = u·h and steering rate
+/// φ̇ = (u·h⊥)/d − ω that move the steering axis of a wheel at angle `phi` with velocity `u`
+/// (body frame) while the body turns at `omega`, without slip. `d` must be > 0.
+#[inline]
+pub fn caster_inverse(u: [f64; 2], phi: f64, omega: f64, d: f64) -> (f64, f64) {
+    let (s, c) = phi.sin_cos();
+    let along = u[0] * c + u[1] * s;
+    let across = -u[0] * s + u[1] * c;
+    (along, across / d - omega)
+}
+
+/// Off-centred steering, forward: the steering axis' body velocity u = v_W h + d (ω + φ̇) h⊥
+/// of a wheel rolling at `v` (m/s) at angle `phi` turning at `phi_rate`, the body turning at
+/// `omega`.
+#[inline]
+pub fn caster_axis_velocity(v: f64, phi: f64, phi_rate: f64, omega: f64, d: f64) -> [f64; 2] {
+    let (s, c) = phi.sin_cos();
+    let k = d * (omega + phi_rate);
+    [v * c - k * s, v * s + k * c]
+}
+
+/// The contact point C = P − d h of a wheel whose steering axis is at `axis` (body frame).
+#[inline]
+pub fn contact_point(axis: [f64; 2], phi: f64, d: f64) -> [f64; 2] {
+    let (s, c) = phi.sin_cos();
+    [axis[0] - d * c, axis[1] - d * s]
+}
+
+/// The steady lag ε of an off-centred wheel behind its direction of travel ψ ([module
+/// docs](self)): φ = ψ + ε rolling forward (`backward = false`), φ = ψ + π + ε backward, for a
+/// steering axis moving at `speed` = |u| whose direction turns at `turn` = ψ̇ + θ̇ (its
+/// direction's rate in the world). When the direction turns faster than |u|/d the wheel
+/// cannot keep up; the lag is then ±π/2 (the wheel is across its direction of travel).
+pub fn caster_lag(speed: f64, turn: f64, d: f64, backward: bool) -> f64 {
+    if d <= 0.0 || !(speed.is_finite() && turn.is_finite()) || speed <= 0.0 {
+        return 0.0;
+    }
+    let s = (d * turn / speed).clamp(-1.0, 1.0);
+    if backward {
+        s.asin()
+    } else {
+        -s.asin()
     }
 }
 
@@ -462,5 +545,55 @@ mod tests {
             assert!(angle::diff(pos[i][1].atan2(pos[i][0]), p.wheels[i].alpha).abs() < 1e-12);
         }
         assert_eq!(pos[5], [0.0, 0.0]);
+    }
+
+    #[test]
+    fn caster_inverse_and_forward_agree_and_slip_free_motion_moves_the_contact_along_the_wheel() {
+        let d = 0.045;
+        for &(u, phi, om) in &[
+            ([0.3, 0.1], 0.2, 0.4),
+            ([-0.2, 0.5], -2.0, -0.3),
+            ([0.0, 0.0], 1.0, 0.0),
+        ] {
+            let (v, rate) = caster_inverse(u, phi, om, d);
+            let back = caster_axis_velocity(v, phi, rate, om, d);
+            assert!((back[0] - u[0]).abs() < 1e-12 && (back[1] - u[1]).abs() < 1e-12);
+            // The contact point's velocity u − d(ω + φ̇) h⊥ lies along the wheel: v h.
+            let (s, c) = phi.sin_cos();
+            let k = d * (om + rate);
+            let cv = [u[0] + k * s, u[1] - k * c];
+            assert!((cv[0] - v * c).abs() < 1e-12 && (cv[1] - v * s).abs() < 1e-12);
+        }
+        // At rest no steering is slip-free.
+        assert_eq!(caster_inverse([0.0, 0.0], 0.7, 0.0, d), (0.0, 0.0));
+        // The contact point trails the axis.
+        let c = contact_point([1.0, 0.0], 0.0, d);
+        assert!((c[0] - (1.0 - d)).abs() < 1e-15 && c[1] == 0.0);
+    }
+
+    #[test]
+    fn a_trailing_caster_settles_on_its_lag_along_a_circle() {
+        // Steering axis on a circle of radius R at speed v (world frame, body not turning):
+        // integrate the slip-free steering rate; the angle settles at ψ + caster_lag.
+        let (d, r, v) = (0.045, 0.5, 0.4);
+        let w = v / r;
+        let mut phi = 1.2; // start far off
+        let dt = 1e-4;
+        let mut t = 0.0;
+        while t < 3.0 {
+            let psi = std::f64::consts::FRAC_PI_2 + w * t;
+            let u = [v * psi.cos(), v * psi.sin()];
+            let (_, rate) = caster_inverse(u, phi, 0.0, d);
+            phi += rate * dt;
+            t += dt;
+        }
+        let psi = std::f64::consts::FRAC_PI_2 + w * t;
+        let lag = caster_lag(v, w, d, false);
+        assert!(lag < 0.0, "trails behind the turn");
+        assert!(
+            angle::diff(phi, psi + lag).abs() < 1e-4,
+            "{phi} vs {}",
+            psi + lag
+        );
     }
 }

@@ -14,6 +14,13 @@
 //! RMS per-wheel mismatch √(Σ|A_i x − b_i|²/n) is reported as a slip indicator: zero for
 //! consistent wheels, of the order of the slip speed when one wheel slips.
 //!
+//! A wheel without a leg has λ_i fixed and λ̇_i = 0. An off-centred wheel (caster offset
+//! d > 0, [`crate::model`], "Off-centred steering") rolls at its contact point
+//! C_i = P_i − d h_i, which moves on the body as the wheel steers: the body's velocity at
+//! C_i is the rolling velocity plus the steering's sweep, v_W h_i + d φ̇_i h⊥_i, so its rows
+//! are A_i = [[1, 0, −C_iy], [0, 1, C_ix]] with b_i = v_W h_i + d φ̇_i h⊥_i − λ̇_i e_i (the
+//! measured steering rate enters the estimate).
+//!
 //! Timing. What a reading at the end of a cycle says about the cycle that just ended depends
 //! on the drives, so it is a setting ([`Sampling`]):
 //!
@@ -100,6 +107,25 @@ struct Solution {
     ata: Matrix3<f64>,
 }
 
+/// Where a wheel's rows of the least-squares system sit, and the extra velocity they carry:
+/// for an off-centred wheel its contact point C_i = P_i − d h_i and the steering's sweep
+/// d φ̇_i h⊥_i; `None` for a centred wheel (the rows at P_i, as seed 000).
+fn offset_rows(
+    wc: &crate::platform::WheelConfig,
+    leg: f64,
+    steer: Option<(f64, f64)>,
+) -> Option<([f64; 2], [f64; 2])> {
+    let d = wc.caster_offset;
+    let (phi, rate) = steer?;
+    if d <= 0.0 {
+        return None;
+    }
+    let (sa, ca) = wc.alpha.sin_cos();
+    let c = crate::model::contact_point([leg * ca, leg * sa], phi, d);
+    let (s, co) = phi.sin_cos();
+    Some((c, [-d * rate * s, d * rate * co]))
+}
+
 fn solve(
     p: &Platform,
     n: usize,
@@ -107,11 +133,31 @@ fn solve(
     legs: &[f64; MAX_WHEELS],
     leg_rates: &[f64; MAX_WHEELS],
 ) -> Option<Solution> {
+    solve_with(p, n, w, legs, leg_rates, &[None; MAX_WHEELS])
+}
+
+fn solve_with(
+    p: &Platform,
+    n: usize,
+    w: &[[f64; 2]; MAX_WHEELS],
+    legs: &[f64; MAX_WHEELS],
+    leg_rates: &[f64; MAX_WHEELS],
+    steer: &[Option<(f64, f64)>; MAX_WHEELS],
+) -> Option<Solution> {
     let mut ata = Matrix3::<f64>::zeros();
     let mut atb = Vector3::<f64>::zeros();
     for (i, wc) in p.wheels.iter().enumerate().take(n) {
         let (sa, ca) = wc.alpha.sin_cos();
         let l = legs[i];
+        if let Some((c, sweep)) = offset_rows(wc, l, steer[i]) {
+            let r0 = Vector3::new(1.0, 0.0, -c[1]);
+            let r1 = Vector3::new(0.0, 1.0, c[0]);
+            let b0 = w[i][0] + sweep[0] - leg_rates[i] * ca;
+            let b1 = w[i][1] + sweep[1] - leg_rates[i] * sa;
+            ata += r0 * r0.transpose() + r1 * r1.transpose();
+            atb += r0 * b0 + r1 * b1;
+            continue;
+        }
         let r0 = Vector3::new(1.0, 0.0, -l * sa);
         let r1 = Vector3::new(0.0, 1.0, l * ca);
         let b0 = w[i][0] - leg_rates[i] * ca;
@@ -127,6 +173,12 @@ fn solve(
     for (i, wc) in p.wheels.iter().enumerate().take(n) {
         let (sa, ca) = wc.alpha.sin_cos();
         let l = legs[i];
+        if let Some((c, sweep)) = offset_rows(wc, l, steer[i]) {
+            let ex = x[0] - x[2] * c[1] + leg_rates[i] * ca - w[i][0] - sweep[0];
+            let ey = x[1] + x[2] * c[0] + leg_rates[i] * sa - w[i][1] - sweep[1];
+            sq += ex * ex + ey * ey;
+            continue;
+        }
         let ex = x[0] - x[2] * l * sa + leg_rates[i] * ca - w[i][0];
         let ey = x[1] + x[2] * l * ca + leg_rates[i] * sa - w[i][1];
         sq += ex * ex + ey * ey;
@@ -230,6 +282,7 @@ impl Odometry {
         let mut legs = [0.0; MAX_WHEELS];
         let mut rates = [0.0; MAX_WHEELS];
         let dtc = if dt.is_finite() && dt > 0.0 { dt } else { 0.0 };
+        let mut steer = [None; MAX_WHEELS];
         let mut ok = n >= 2 && dtc > 0.0;
         let back = match self.sampling {
             Sampling::Continuous => 0.0,
@@ -242,13 +295,17 @@ impl Odometry {
             w[i] = [v * phi.cos(), v * phi.sin()];
             legs[i] = wm.leg - back * wm.leg_rate;
             rates[i] = wm.leg_rate;
+            if p.wheels[i].off_centred() {
+                steer[i] = Some((phi, wm.steer_rate));
+                ok &= wm.steer_rate.is_finite();
+            }
             ok &= w[i][0].is_finite()
                 && w[i][1].is_finite()
                 && legs[i].is_finite()
                 && rates[i].is_finite();
         }
         let solved = if ok {
-            solve(p, n, &w, &legs, &rates)
+            solve_with(p, n, &w, &legs, &rates, &steer)
         } else {
             None
         };
@@ -518,5 +575,46 @@ mod tests {
             pos_z > 5.0 * pos_c && pos_z > 5e-4,
             "zero-order-hold model error {pos_z} m"
         );
+    }
+
+    #[test]
+    fn off_centred_wheels_at_any_angle_give_the_true_twist() {
+        // MPO-700-like: d = 45 mm, wheels at arbitrary angles (not along their direction of
+        // travel), each rolling and steering as the slip-free constraint says.
+        let p = Platform::mpo700();
+        let tw = Twist {
+            vx: 0.3,
+            vy: -0.15,
+            omega: 0.5,
+        };
+        let mut m = Measurement {
+            n: 4,
+            ..Measurement::default()
+        };
+        let angles = [0.3, -2.0, 2.9, 1.1];
+        for i in 0..4 {
+            let w = &p.wheels[i];
+            let u = wheel_velocity_body(&p, i, 0.0, w.lambda_nominal, &tw, 0.0);
+            let (v, rate) = crate::model::caster_inverse(u, angles[i], tw.omega, w.caster_offset);
+            m.wheels[i] = WheelMeasurement {
+                steer_angle: angles[i],
+                steer_rate: rate,
+                wheel_speed: v / p.wheel_radius,
+                leg: w.lambda_nominal,
+                leg_rate: 0.0,
+            };
+        }
+        let out = Odometry::new(Pose::default()).update(&p, &m, 0.004);
+        assert!(out.residual < 1e-12, "residual {}", out.residual);
+        assert!((out.twist_body.vx - tw.vx).abs() < 1e-12);
+        assert!((out.twist_body.vy - tw.vy).abs() < 1e-12);
+        assert!((out.twist_body.omega - tw.omega).abs() < 1e-12);
+        // Ignoring the offset (the centred model) gets it wrong.
+        let mut centred = p.clone();
+        for w in &mut centred.wheels {
+            w.caster_offset = 0.0;
+        }
+        let wrong = Odometry::new(Pose::default()).update(&centred, &m, 0.004);
+        assert!(wrong.residual > 0.01 && (wrong.twist_body.omega - tw.omega).abs() > 0.01);
     }
 }

@@ -74,9 +74,39 @@ fn invalid(
     }
 }
 
-/// One wheel module: its leg and its CAN node.
+/// Most CAN buses a platform may spread its wheel modules over (`wheels[i].bus` = 0 or 1).
+pub const MAX_BUSES: usize = 2;
+
+/// Largest caster offset `wheels[i].caster_offset` (m).
+pub const MAX_CASTER_OFFSET: f64 = 0.5;
+
+/// Smallest steering range `wheels[i].steer_range` may span (rad): a little more than half a
+/// turn, so that a wheel can always roll one of its two ways (forward at φ, backward at
+/// φ + π) without leaving the range ([`crate::angle::SteerRange`]).
+pub const MIN_STEER_SPAN: f64 = std::f64::consts::PI + 0.1;
+
+/// Largest steering range `wheels[i].steer_range` may span (rad): three turns. The steering
+/// encoders are absolute over one turn; the controller counts turns from the start
+/// ([`crate::angle::SteerRange`]).
+pub const MAX_STEER_SPAN: f64 = 6.0 * std::f64::consts::PI;
+
+/// Largest distance of a fixed wheel's steering axis from the body origin (m).
+pub const MAX_FIXED_LAMBDA: f64 = 5.0;
+
+/// Largest steer→drive coupling `wheels[i].coupling` (wheel turns per steering turn).
+pub const MAX_COUPLING: f64 = 10.0;
+
+/// One wheel module: where its steering axis sits (on a leg, or fixed), how it steers
+/// (centred or off-centred, endless or within a range), its motors' polarity and coupling,
+/// its CAN node and bus.
+///
+/// In the platform file a wheel on a leg gives `lambda_min`, `lambda_max` and
+/// `lambda_nominal`; a wheel without a leg (a fixed footprint) gives `lambda` instead, its
+/// steering axis' fixed distance from the body origin along `alpha`. In memory a wheel
+/// without a leg has `leg = false` and `lambda_min = lambda_max = lambda_nominal = lambda`,
+/// so every use of the leg range sees a range of one point.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(try_from = "WheelFile", into = "WheelFile")]
 pub struct WheelConfig {
     /// CAN node number of the module (1..=15).
     pub node: u8,
@@ -88,6 +118,196 @@ pub struct WheelConfig {
     pub lambda_max: f64,
     /// Nominal (equilibrium) leg extension λ_i,0 used by the leg repulsion (m).
     pub lambda_nominal: f64,
+    /// The wheel sits on a leg with an encoder (true), or is mounted at a fixed distance
+    /// (false: no leg encoder, no leg setpoint, no leg joint).
+    pub leg: bool,
+    /// Caster offset d ≥ 0 (m): the wheel's contact point trails the steering axis by d
+    /// along the wheel plane, P_i − d (cos φ_i, sin φ_i) (seed 003's off-centred orientable
+    /// wheel; [`crate::model`], "Off-centred steering"). 0 = centred steering.
+    pub caster_offset: f64,
+    /// Steering range [min, max] (rad) when the wheel cannot steer endlessly (cable stops):
+    /// its steering angle never leaves it. `None`: endless (slip rings).
+    pub steer_range: Option<[f64; 2]>,
+    /// The CAN bus the module is on (0 or 1). The cycle core runs one link per bus
+    /// ([`crate::link::Buses`]); the command line drives one bus so far, so `rollbase` refuses
+    /// to run a platform with wheels on bus 1 (`config check` accepts it).
+    pub bus: u8,
+    /// +1, or −1 for a rolling motor mounted mirrored: its positive direction rolls the
+    /// wheel backwards. Applied to setpoints and feedback on the wire side (both profiles).
+    pub drive_polarity: i8,
+    /// +1, or −1 for a steering motor (and encoder) whose positive direction turns the wheel
+    /// clockwise seen from above.
+    pub steer_polarity: i8,
+    /// Steer→drive coupling (wheel turns per steering turn): modules whose rolling motor sits
+    /// in the body and drives the wheel through the steering axis (bevel gears) turn the wheel
+    /// by `coupling · Δφ` when only the steering turns. The wheel's spin is then
+    /// ω = ω_motor + coupling · φ̇ (ω_motor the rolling motor's speed at the wheel); the link
+    /// subtracts it from every rolling setpoint and adds it to every measured rolling speed.
+    pub coupling: f64,
+}
+
+fn one() -> i8 {
+    1
+}
+
+/// A wheel as written in the platform file (see [`WheelConfig`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct WheelFile {
+    node: u8,
+    alpha: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    lambda: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    lambda_min: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    lambda_max: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    lambda_nominal: Option<f64>,
+    #[serde(default)]
+    caster_offset: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    steer_range: Option<[f64; 2]>,
+    #[serde(default)]
+    bus: u8,
+    #[serde(default = "one")]
+    drive_polarity: i8,
+    #[serde(default = "one")]
+    steer_polarity: i8,
+    #[serde(default)]
+    coupling: f64,
+}
+
+impl WheelFile {
+    /// The wheel in memory; `at` is its place in the file (`wheels[2]`), for the errors. Only
+    /// the choice between a leg and a fixed mount is checked here; the values are checked by
+    /// [`Platform::validate`].
+    fn into_config(self, at: &str) -> Result<WheelConfig, ConfigError> {
+        let legged = [self.lambda_min, self.lambda_max, self.lambda_nominal];
+        let (lambda_min, lambda_max, lambda_nominal, leg) = match (self.lambda, legged) {
+            (Some(l), [None, None, None]) => (l, l, l, false),
+            (None, [Some(a), Some(b), Some(c)]) => (a, b, c, true),
+            (Some(l), _) => {
+                let field = ["lambda_min", "lambda_max", "lambda_nominal"]
+                    .iter()
+                    .zip(legged)
+                    .find(|(_, v)| v.is_some())
+                    .map_or("lambda_min", |(f, _)| *f);
+                return Err(invalid(
+                    format!("{at}.{field}"),
+                    legged.iter().flatten().next().map_or(0.0, |v| *v),
+                    format!("a wheel with a fixed `lambda` = {l} has no leg: remove lambda_min, lambda_max and lambda_nominal, or remove `lambda` for a wheel on a leg"),
+                ));
+            }
+            (None, _) => {
+                let field = ["lambda_min", "lambda_max", "lambda_nominal"]
+                    .iter()
+                    .zip(legged)
+                    .find(|(_, v)| v.is_none())
+                    .map_or("lambda", |(f, _)| *f);
+                return Err(invalid(
+                    format!("{at}.{field}"),
+                    "(missing)",
+                    "a wheel on a leg needs lambda_min, lambda_max and lambda_nominal (m); a wheel without a leg gives only `lambda`, its steering axis' distance from the body origin (m)",
+                ));
+            }
+        };
+        Ok(WheelConfig {
+            node: self.node,
+            alpha: self.alpha,
+            lambda_min,
+            lambda_max,
+            lambda_nominal,
+            leg,
+            caster_offset: self.caster_offset,
+            steer_range: self.steer_range,
+            bus: self.bus,
+            drive_polarity: self.drive_polarity,
+            steer_polarity: self.steer_polarity,
+            coupling: self.coupling,
+        })
+    }
+}
+
+impl TryFrom<WheelFile> for WheelConfig {
+    type Error = String;
+    fn try_from(f: WheelFile) -> Result<Self, String> {
+        f.into_config("wheels[]").map_err(|e| e.to_string())
+    }
+}
+
+impl From<WheelConfig> for WheelFile {
+    fn from(w: WheelConfig) -> Self {
+        let (lambda, lambda_min, lambda_max, lambda_nominal) = if w.leg {
+            (
+                None,
+                Some(w.lambda_min),
+                Some(w.lambda_max),
+                Some(w.lambda_nominal),
+            )
+        } else {
+            (Some(w.lambda_nominal), None, None, None)
+        };
+        Self {
+            node: w.node,
+            alpha: w.alpha,
+            lambda,
+            lambda_min,
+            lambda_max,
+            lambda_nominal,
+            caster_offset: w.caster_offset,
+            steer_range: w.steer_range,
+            bus: w.bus,
+            drive_polarity: w.drive_polarity,
+            steer_polarity: w.steer_polarity,
+            coupling: w.coupling,
+        }
+    }
+}
+
+impl WheelConfig {
+    /// A wheel on a leg with range [λ_min, λ_max], nominal λ_0, centred endless steering,
+    /// both motors positive, no coupling, on bus 0.
+    pub fn on_leg(node: u8, alpha: f64, lambda_min: f64, lambda_max: f64, nominal: f64) -> Self {
+        Self {
+            node,
+            alpha,
+            lambda_min,
+            lambda_max,
+            lambda_nominal: nominal,
+            leg: true,
+            caster_offset: 0.0,
+            steer_range: None,
+            bus: 0,
+            drive_polarity: 1,
+            steer_polarity: 1,
+            coupling: 0.0,
+        }
+    }
+
+    /// A wheel without a leg, its steering axis at `lambda` along `alpha` (otherwise as
+    /// [`WheelConfig::on_leg`]).
+    pub fn fixed(node: u8, alpha: f64, lambda: f64) -> Self {
+        Self {
+            leg: false,
+            ..Self::on_leg(node, alpha, lambda, lambda, lambda)
+        }
+    }
+
+    /// Whether the wheel sits on a leg (with a leg encoder).
+    pub fn has_leg(&self) -> bool {
+        self.leg
+    }
+
+    /// Whether the contact point is off the steering axis (caster offset > 0).
+    pub fn off_centred(&self) -> bool {
+        self.caster_offset > 0.0
+    }
+
+    /// The steering range as (min, max) (rad); `None` when endless.
+    pub fn steer_limits(&self) -> Option<(f64, f64)> {
+        self.steer_range.map(|[a, b]| (a, b))
+    }
 }
 
 /// Actuator limits, per wheel module.
@@ -258,13 +478,7 @@ impl Platform {
     pub fn justin() -> Self {
         let a = (515.0f64).atan2(685.0);
         let pi = std::f64::consts::PI;
-        let wheel = |node: u8, alpha: f64| WheelConfig {
-            node,
-            alpha,
-            lambda_min: 0.37,
-            lambda_max: 0.56,
-            lambda_nominal: 0.465,
-        };
+        let wheel = |node: u8, alpha: f64| WheelConfig::on_leg(node, alpha, 0.37, 0.56, 0.465);
         Self {
             name: "justin-like".into(),
             wheel_radius: 0.085,
@@ -301,11 +515,67 @@ impl Platform {
     }
 
     /// The CiA 402 profile's configuration: the `[cia402]` table, or the default node
-    /// assignment for this platform's wheel count.
+    /// assignment for this platform's wheel count (a wheel without a leg has no leg encoder:
+    /// `leg_node = 0`).
     pub fn cia402(&self) -> Cia402Config {
-        self.cia402
-            .clone()
-            .unwrap_or_else(|| Cia402Config::for_wheels(self.n()))
+        self.cia402.clone().unwrap_or_else(|| {
+            let mut c = Cia402Config::for_wheels(self.n());
+            for (cw, w) in c.wheels.iter_mut().zip(&self.wheels) {
+                if !w.leg {
+                    cw.leg_node = 0;
+                }
+            }
+            c
+        })
+    }
+
+    /// Whether any wheel sits on a leg.
+    pub fn has_legs(&self) -> bool {
+        self.wheels.iter().any(|w| w.leg)
+    }
+
+    /// Number of wheels on legs.
+    pub fn n_legs(&self) -> usize {
+        self.wheels.iter().filter(|w| w.leg).count()
+    }
+
+    /// Whether any wheel's contact point is off its steering axis.
+    pub fn has_caster_offset(&self) -> bool {
+        self.wheels.iter().any(|w| w.off_centred())
+    }
+
+    /// Number of CAN buses the wheels are on (1 or 2).
+    pub fn buses(&self) -> usize {
+        self.wheels
+            .iter()
+            .map(|w| usize::from(w.bus) + 1)
+            .max()
+            .unwrap_or(1)
+            .clamp(1, MAX_BUSES)
+    }
+
+    /// The part of the platform on bus `b`: its wheels in wheel order (and their `[cia402]`
+    /// entries), everything else as it is. What one bus's link is built from.
+    pub fn bus_subset(&self, b: usize) -> Self {
+        let mine: Vec<usize> = self.wheels_on_bus(b).collect();
+        let mut p = self.clone();
+        p.wheels = mine.iter().map(|&i| self.wheels[i]).collect();
+        let mut c = self.cia402();
+        c.wheels = mine
+            .iter()
+            .filter_map(|&i| c.wheels.get(i).copied())
+            .collect();
+        p.cia402 = Some(c);
+        p
+    }
+
+    /// The wheels on bus `b`, as indices in wheel order.
+    pub fn wheels_on_bus(&self, b: usize) -> impl Iterator<Item = usize> + '_ {
+        self.wheels
+            .iter()
+            .enumerate()
+            .filter(move |(_, w)| usize::from(w.bus) == b)
+            .map(|(i, _)| i)
     }
 
     /// Number of wheels n.
@@ -320,6 +590,7 @@ impl Platform {
 
     /// Parses and validates a platform from TOML text.
     pub fn from_toml_str(text: &str) -> Result<Self, ConfigError> {
+        check_wheel_tables(text)?;
         let p: Platform = toml::from_str(text).map_err(|e| ConfigError::Parse(e.to_string()))?;
         p.validate()?;
         Ok(p)
@@ -404,35 +675,31 @@ impl Platform {
                     "must be a finite angle in radians",
                 ));
             }
-            pos(&f("lambda_min"), w.lambda_min)?;
-            pos(&f("lambda_max"), w.lambda_max)?;
-            if w.lambda_min >= w.lambda_max {
-                return Err(invalid(
-                    f("lambda_min"),
-                    Num(w.lambda_min),
-                    format!("must be less than lambda_max = {}", w.lambda_max),
-                ));
+            if w.leg {
+                self.validate_leg(i, w)?;
+            } else {
+                if !(w.lambda_nominal.is_finite()
+                    && w.lambda_nominal > 0.0
+                    && w.lambda_nominal <= MAX_FIXED_LAMBDA)
+                {
+                    return Err(invalid(
+                        f("lambda"),
+                        Num(w.lambda_nominal),
+                        format!("must be the steering axis' distance from the body origin, greater than 0 and at most {MAX_FIXED_LAMBDA} m"),
+                    ));
+                }
+                if w.lambda_min != w.lambda_nominal || w.lambda_max != w.lambda_nominal {
+                    return Err(invalid(
+                        f("lambda"),
+                        Num(w.lambda_nominal),
+                        format!(
+                            "a wheel without a leg has lambda_min = lambda_max = lambda (here [{}, {}])",
+                            w.lambda_min, w.lambda_max
+                        ),
+                    ));
+                }
             }
-            if w.lambda_max > 0.65 {
-                return Err(invalid(
-                    f("lambda_max"),
-                    Num(w.lambda_max),
-                    "exceeds the protocol's leg-extension range of 0.65 m",
-                ));
-            }
-            if !w.lambda_nominal.is_finite()
-                || w.lambda_nominal < w.lambda_min
-                || w.lambda_nominal > w.lambda_max
-            {
-                return Err(invalid(
-                    f("lambda_nominal"),
-                    Num(w.lambda_nominal),
-                    format!(
-                        "must lie in [lambda_min, lambda_max] = [{}, {}]",
-                        w.lambda_min, w.lambda_max
-                    ),
-                ));
-            }
+            self.validate_steering(i, w)?;
             for (j, o) in self.wheels.iter().enumerate().take(i) {
                 if o.node == w.node {
                     return Err(invalid(
@@ -442,7 +709,11 @@ impl Platform {
                     ));
                 }
                 let d = crate::angle::diff(w.alpha, o.alpha).abs();
-                if d < 1e-3 {
+                // Two legs on one direction would collide; two fixed wheels may share a
+                // direction at different distances.
+                let apart =
+                    !(w.leg || o.leg) && (w.lambda_nominal - o.lambda_nominal).abs() >= 0.01;
+                if d < 1e-3 && !apart {
                     return Err(invalid(
                         f("alpha"),
                         w.alpha,
@@ -450,6 +721,13 @@ impl Platform {
                     ));
                 }
             }
+        }
+        if self.buses() > 1 && self.wheels_on_bus(0).next().is_none() {
+            return Err(invalid(
+                "wheels[0].bus",
+                self.wheels[0].bus,
+                "no wheel is on bus 0 but some are on bus 1: number the buses from 0",
+            ));
         }
         let l = &self.limits;
         pos("limits.wheel_speed", l.wheel_speed)?;
@@ -518,6 +796,126 @@ impl Platform {
 }
 
 impl Platform {
+    /// A wheel on a leg: its range and nominal extension.
+    fn validate_leg(&self, i: usize, w: &WheelConfig) -> Result<(), ConfigError> {
+        let f = |name: &str| format!("wheels[{i}].{name}");
+        for (name, v) in [("lambda_min", w.lambda_min), ("lambda_max", w.lambda_max)] {
+            if !v.is_finite() {
+                return Err(invalid(f(name), Num(v), "must be a finite number"));
+            }
+            if v <= 0.0 {
+                return Err(invalid(f(name), Num(v), "must be greater than zero"));
+            }
+        }
+        if w.lambda_min >= w.lambda_max {
+            return Err(invalid(
+                f("lambda_min"),
+                Num(w.lambda_min),
+                format!(
+                    "must be less than lambda_max = {} (a wheel without a leg gives `lambda` instead of the leg range)",
+                    w.lambda_max
+                ),
+            ));
+        }
+        if w.lambda_max > 0.65 {
+            return Err(invalid(
+                f("lambda_max"),
+                Num(w.lambda_max),
+                "exceeds the protocol's leg-extension range of 0.65 m",
+            ));
+        }
+        if !w.lambda_nominal.is_finite()
+            || w.lambda_nominal < w.lambda_min
+            || w.lambda_nominal > w.lambda_max
+        {
+            return Err(invalid(
+                f("lambda_nominal"),
+                Num(w.lambda_nominal),
+                format!(
+                    "must lie in [lambda_min, lambda_max] = [{}, {}]",
+                    w.lambda_min, w.lambda_max
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// A wheel's steering and motors: caster offset, steering range, bus, polarity, coupling.
+    fn validate_steering(&self, i: usize, w: &WheelConfig) -> Result<(), ConfigError> {
+        let f = |name: &str| format!("wheels[{i}].{name}");
+        let d = w.caster_offset;
+        if !(d.is_finite() && (0.0..=MAX_CASTER_OFFSET).contains(&d)) {
+            return Err(invalid(
+                f("caster_offset"),
+                Num(d),
+                format!("must lie in [0, {MAX_CASTER_OFFSET}] m: the distance from the steering axis back to the wheel's contact point, measured along the wheel plane behind the axis (a trailing caster); 0 for a wheel whose steering axis passes through its contact point"),
+            ));
+        }
+        if d >= w.lambda_min {
+            return Err(invalid(
+                f("caster_offset"),
+                Num(d),
+                format!(
+                    "must be less than the steering axis' smallest distance from the body origin ({} m): the contact point would swing across the body origin",
+                    w.lambda_min
+                ),
+            ));
+        }
+        if let Some([lo, hi]) = w.steer_range {
+            let shown = format!("[{}, {}]", Num(lo), Num(hi));
+            if !(lo.is_finite() && hi.is_finite()) {
+                return Err(invalid(
+                    f("steer_range"),
+                    shown,
+                    "must be two finite angles [min, max] in radians",
+                ));
+            }
+            if hi - lo < MIN_STEER_SPAN {
+                return Err(invalid(
+                    f("steer_range"),
+                    shown,
+                    format!(
+                        "must span more than half a turn, at least {MIN_STEER_SPAN:.2} rad (min < max): within it a wheel must be able to roll one of its two ways (forward at φ or backward at φ + π) in every direction; a wheel that cannot steer that far is not an omnidirectional wheel"
+                    ),
+                ));
+            }
+            if hi - lo > MAX_STEER_SPAN {
+                return Err(invalid(
+                    f("steer_range"),
+                    shown,
+                    format!("may span at most three turns ({MAX_STEER_SPAN:.2} rad); leave it out for a wheel that steers endlessly"),
+                ));
+            }
+        }
+        if usize::from(w.bus) >= MAX_BUSES {
+            return Err(invalid(
+                f("bus"),
+                w.bus,
+                format!("must be 0 or 1: a platform has at most {MAX_BUSES} buses"),
+            ));
+        }
+        for (name, v) in [
+            ("drive_polarity", w.drive_polarity),
+            ("steer_polarity", w.steer_polarity),
+        ] {
+            if v != 1 && v != -1 {
+                return Err(invalid(
+                    f(name),
+                    v,
+                    "must be 1, or -1 for a motor mounted mirrored (its positive direction turns the wheel the other way)",
+                ));
+            }
+        }
+        if !(w.coupling.is_finite() && w.coupling.abs() <= MAX_COUPLING) {
+            return Err(invalid(
+                f("coupling"),
+                Num(w.coupling),
+                format!("must be a finite ratio within ±{MAX_COUPLING}: wheel turns per steering turn when only the steering turns (0 for modules whose motors do not couple)"),
+            ));
+        }
+        Ok(())
+    }
+
     /// Checks the `[cia402]` section against the platform: node assignment and timing
     /// ([`Cia402Config::validate`]), and that the units carry the platform's limits: twice
     /// the wheel-speed and steering-rate limits must fit the drives' INTEGER32 velocity
@@ -527,6 +925,22 @@ impl Platform {
         let c = self.cia402();
         c.validate(self.n(), self.cycle_hz)
             .map_err(|e| invalid(e.field, e.value, e.reason))?;
+        for (i, (cw, w)) in c.wheels.iter().zip(&self.wheels).enumerate() {
+            if w.leg && cw.leg_node == 0 {
+                return Err(invalid(
+                    format!("cia402.wheels[{i}].leg_node"),
+                    0,
+                    format!("wheels[{i}] sits on a leg: give its CiA 406 leg encoder's node-ID (1..=127)"),
+                ));
+            }
+            if !w.leg && cw.leg_node != 0 {
+                return Err(invalid(
+                    format!("cia402.wheels[{i}].leg_node"),
+                    cw.leg_node,
+                    format!("wheels[{i}] has no leg (`lambda`): it has no leg encoder; set leg_node = 0"),
+                ));
+            }
+        }
         // The drives' RPDO deadline is their setpoint watchdog: like the native modules' it
         // must span the cycles the controller tolerates without feedback plus one.
         let need_ms = f64::from(TOLERATED_LOST_CYCLES + 1) * 1000.0 / self.cycle_hz;
@@ -569,7 +983,7 @@ impl Platform {
                 ),
             ));
         }
-        for (i, w) in self.wheels.iter().enumerate() {
+        for (i, w) in self.wheels.iter().enumerate().filter(|(_, w)| w.leg) {
             if enc.m_to_position(w.lambda_min).is_none()
                 || enc.m_to_position(w.lambda_max).is_none()
             {
@@ -584,6 +998,144 @@ impl Platform {
             }
         }
         Ok(())
+    }
+}
+
+/// The pre-pass of [`Platform::from_toml_str`]: every `[[wheels]]` table chooses between a
+/// leg and a fixed mount, checked here with the wheel's index in the error (the full parse
+/// that follows would only say where in the file).
+fn check_wheel_tables(text: &str) -> Result<(), ConfigError> {
+    let Ok(table) = toml::from_str::<toml::Table>(text) else {
+        // Not TOML at all: the full parse reports it with its position.
+        return Ok(());
+    };
+    let Some(toml::Value::Array(wheels)) = table.get("wheels") else {
+        return Ok(());
+    };
+    for (i, w) in wheels.iter().enumerate() {
+        if let Ok(f) = WheelFile::deserialize(w.clone()) {
+            f.into_config(&format!("wheels[{i}]"))?;
+        }
+    }
+    Ok(())
+}
+
+/// The example platforms' names, for `rollbase config default --example NAME`.
+pub const EXAMPLE_NAMES: [&str; 3] = ["mpo700", "three-wheel", "six-wheel"];
+
+impl Platform {
+    /// An example platform by name ([`EXAMPLE_NAMES`]; `justin` is the default platform).
+    pub fn example(name: &str) -> Option<Self> {
+        match name {
+            "justin" => Some(Self::justin()),
+            "mpo700" => Some(Self::mpo700()),
+            "three-wheel" => Some(Self::three_wheel()),
+            "six-wheel" => Some(Self::six_wheel()),
+            _ => None,
+        }
+    }
+
+    /// An MPO-700-like base (docs/examples/mpo700.toml): four wheels without legs at the
+    /// corners of a 0.48 m × 0.38 m rectangle, contact points 45 mm behind their steering
+    /// axes (the off-centred steering of Neobotix's omni-drive modules, modelled in ROS by
+    /// cob_omni_drive_controller as `wheel_offset`), steering limited to ±1.2 turns by the
+    /// modules' cables, wheel radius 0.09 m, 0.6 m/s wheels. The numbers are illustrative,
+    /// not a datasheet's.
+    pub fn mpo700() -> Self {
+        let (x, y): (f64, f64) = (0.24, 0.19);
+        let l = x.hypot(y);
+        let a = y.atan2(x);
+        let pi = std::f64::consts::PI;
+        let turns = 1.2 * std::f64::consts::TAU;
+        let wheel = |node: u8, alpha: f64| WheelConfig {
+            caster_offset: 0.045,
+            steer_range: Some([-turns, turns]),
+            ..WheelConfig::fixed(node, alpha, l)
+        };
+        Self {
+            name: "mpo700-like".into(),
+            wheel_radius: 0.09,
+            mass: 100.0,
+            drive_torque: 20.0,
+            steer_torque: 15.0,
+            cycle_hz: 250.0,
+            wheels: vec![
+                wheel(1, a),
+                wheel(2, pi - a),
+                wheel(3, a - pi),
+                wheel(4, -a),
+            ],
+            limits: Limits {
+                wheel_speed: 12.0,
+                wheel_accel: 12.0,
+                steer_rate: 6.0,
+                steer_accel: 40.0,
+                leg_speed: 0.25,
+            },
+            ..Self::justin()
+        }
+    }
+
+    /// A three-wheel base without legs (docs/examples/three-wheel.toml): centred wheels 0.3 m
+    /// from the centre at 120° spacing, steering limited to ±170° by cable stops; the second
+    /// wheel's motors are mounted mirrored (both polarities −1).
+    pub fn three_wheel() -> Self {
+        let pi = std::f64::consts::PI;
+        let stop = 170f64.to_radians();
+        let wheel = |node: u8, alpha: f64| WheelConfig {
+            steer_range: Some([-stop, stop]),
+            ..WheelConfig::fixed(node, alpha, 0.3)
+        };
+        let mut wheels = vec![
+            wheel(1, 0.0),
+            wheel(2, 2.0 * pi / 3.0),
+            wheel(3, -2.0 * pi / 3.0),
+        ];
+        wheels[1].drive_polarity = -1;
+        wheels[1].steer_polarity = -1;
+        Self {
+            name: "three-wheel".into(),
+            wheel_radius: 0.075,
+            mass: 60.0,
+            drive_torque: 10.0,
+            steer_torque: 8.0,
+            cycle_hz: 250.0,
+            wheels,
+            limits: Limits {
+                wheel_speed: 16.0,
+                wheel_accel: 20.0,
+                steer_rate: 5.0,
+                steer_accel: 30.0,
+                leg_speed: 0.25,
+            },
+            ..Self::justin()
+        }
+    }
+
+    /// A six-wheel Justin-like base on two buses (docs/examples/six-wheel.toml): six wheels
+    /// on legs at 60° spacing, λ ∈ [0.37, 0.56] m, wheels 1–3 on bus 0 and 4–6 on bus 1 (six
+    /// native modules or eighteen CiA 402/406 devices are too much for one 1 Mbit/s bus at
+    /// 250 Hz: `rollbase bus-load --config`).
+    pub fn six_wheel() -> Self {
+        let pi = std::f64::consts::PI;
+        let wheels = (0..6u8)
+            .map(|k| WheelConfig {
+                bus: k / 3,
+                ..WheelConfig::on_leg(
+                    k + 1,
+                    crate::angle::wrap(pi / 6.0 + f64::from(k) * pi / 3.0),
+                    0.37,
+                    0.56,
+                    0.465,
+                )
+            })
+            .collect();
+        Self {
+            name: "six-wheel".into(),
+            mass: 220.0,
+            wheels,
+            ..Self::justin()
+        }
     }
 }
 
@@ -737,5 +1289,133 @@ mod tests {
             Platform::from_toml_str(&t),
             Err(ConfigError::Parse(_))
         ));
+    }
+
+    #[test]
+    fn the_examples_are_valid_and_round_trip() {
+        for name in EXAMPLE_NAMES {
+            let p = Platform::example(name).unwrap();
+            p.validate().unwrap();
+            let text = p.to_toml_string();
+            assert_eq!(Platform::from_toml_str(&text).unwrap(), p, "{name}");
+            let mut c = p.clone();
+            c.protocol = Protocol::Cia402;
+            c.validate().unwrap();
+            c.cia402 = Some(c.cia402());
+            assert_eq!(Platform::from_toml_str(&c.to_toml_string()).unwrap(), c);
+        }
+        assert!(Platform::example("nope").is_none());
+        let m = Platform::mpo700();
+        assert!(!m.has_legs() && m.has_caster_offset() && m.buses() == 1);
+        let s = Platform::six_wheel();
+        assert_eq!((s.n(), s.buses(), s.n_legs()), (6, 2, 6));
+        assert_eq!(s.wheels_on_bus(1).collect::<Vec<_>>(), vec![3, 4, 5]);
+        // A fixed wheel is written with `lambda` only.
+        let t = Platform::three_wheel().to_toml_string();
+        assert!(
+            t.contains("lambda = 0.3") && !t.contains("lambda_min"),
+            "{t}"
+        );
+        // Without a leg the CiA 402 default has no leg encoder.
+        assert!(Platform::three_wheel()
+            .cia402()
+            .wheels
+            .iter()
+            .all(|w| w.leg_node == 0));
+    }
+
+    fn err_of(text: &str) -> (String, String) {
+        match Platform::from_toml_str(text) {
+            Err(ConfigError::Invalid { field, reason, .. }) => (field, reason),
+            other => panic!("expected Invalid, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn every_new_wheel_field_is_explained() {
+        let base = Platform::three_wheel().to_toml_string();
+        let legged = Platform::justin().to_toml_string();
+        let cases: Vec<(String, &str, &str)> = vec![
+            // A fixed wheel that also gives a leg range.
+            (
+                base.replacen("lambda = 0.3\n", "lambda = 0.3\nlambda_max = 0.5\n", 1),
+                "wheels[0].lambda_max",
+                "remove lambda_min",
+            ),
+            // A wheel on a leg missing part of its range.
+            (
+                legged.replacen("lambda_nominal = 0.465\n", "", 1),
+                "wheels[0].lambda_nominal",
+                "gives only `lambda`",
+            ),
+            (
+                base.replacen("lambda = 0.3\n", "lambda = -0.3\n", 1),
+                "wheels[0].lambda",
+                "distance from the body origin",
+            ),
+            (
+                base.replacen("caster_offset = 0.0", "caster_offset = -0.01", 1),
+                "wheels[0].caster_offset",
+                "trailing caster",
+            ),
+            (
+                base.replacen("caster_offset = 0.0", "caster_offset = 0.31", 1),
+                "wheels[0].caster_offset",
+                "across the body origin",
+            ),
+            (
+                base.replacen("-2.9670597283903604", "1.0", 1),
+                "wheels[0].steer_range",
+                "half a turn",
+            ),
+            (
+                base.replacen("-2.9670597283903604", "-30.0", 1),
+                "wheels[0].steer_range",
+                "three turns",
+            ),
+            (
+                base.replacen("bus = 0", "bus = 2", 1),
+                "wheels[0].bus",
+                "at most 2 buses",
+            ),
+            (
+                base.replace("bus = 0", "bus = 1"),
+                "wheels[0].bus",
+                "number the buses from 0",
+            ),
+            (
+                base.replacen("drive_polarity = 1", "drive_polarity = 0", 1),
+                "wheels[0].drive_polarity",
+                "mirrored",
+            ),
+            (
+                base.replacen("steer_polarity = 1", "steer_polarity = 2", 1),
+                "wheels[0].steer_polarity",
+                "mirrored",
+            ),
+            (
+                base.replacen("coupling = 0.0", "coupling = 11.0", 1),
+                "wheels[0].coupling",
+                "wheel turns per steering turn",
+            ),
+        ];
+        for (text, field, hint) in cases {
+            let (f, reason) = err_of(&text);
+            assert_eq!(f, field, "{reason}");
+            assert!(reason.contains(hint), "{field}: {reason}");
+        }
+        // CiA 402: a wheel without a leg has no leg encoder, a wheel on a leg has one.
+        let mut p = Platform::three_wheel();
+        p.protocol = Protocol::Cia402;
+        let mut c = p.cia402();
+        c.wheels[1].leg_node = 20;
+        p.cia402 = Some(c);
+        assert_eq!(err_field(&p), "cia402.wheels[1].leg_node");
+        let mut p = Platform::justin();
+        p.protocol = Protocol::Cia402;
+        let mut c = p.cia402();
+        c.wheels[2].leg_node = 0;
+        p.cia402 = Some(c);
+        assert_eq!(err_field(&p), "cia402.wheels[2].leg_node");
     }
 }

@@ -31,6 +31,8 @@ pub struct FrameRecord {
     pub data: [u8; 8],
     /// For received frames: `None` if accepted, else the rejection kind.
     pub error: Option<&'static str>,
+    /// The bus it was sent on or received from (`wheels[i].bus`; 0 on a one-bus platform).
+    pub bus: u8,
 }
 
 /// Avoidance part of a cycle record.

@@ -75,11 +75,14 @@ pub fn trajectory_arg(
 /// pure rotation from rest, where the DFL is singular (det H ∝ v_W) and its start-up
 /// transient saturates the wheel spin (limit ratio ≈ 58 at t ≈ 0.16 s on the ideal plant,
 /// leaving 4.4 cm of tracking error), while the kinematic controller tracks it within
-/// 0.7–1.4 cm (docs/avoidance.md). Seed 001 also runs at its own timing (time scaling off):
+/// 0.7–1.4 cm (docs/avoidance.md). Seed 001's nominal is not time-scaled (time scaling off):
 /// its nominal ICR passes 2.5 cm from the wheels on purpose, asking 2.9× the steering rate
 /// and 5.3× the steering acceleration limit, and the experiment is the avoidance that
-/// reshapes it online; slowed down offline it would no longer be that experiment
-/// (docs/time-scaling.md).
+/// reshapes it; slowed down first it would no longer be that experiment
+/// (docs/time-scaling.md). The avoidance acts on the nominal at its own timing, and the
+/// path it makes is then time-scaled within every limit, whatever this option says
+/// ([`crate::avoidance`], "Pre-planned trajectories"); with `--avoidance off` the nominal
+/// runs as given.
 pub fn runtime_config(s: Scenario) -> RuntimeConfig {
     let mut cfg = RuntimeConfig::default();
     if s == Scenario::Seed001 {

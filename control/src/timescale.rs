@@ -2410,6 +2410,10 @@ impl Trajectory for ScaledTrajectory {
     fn timing(&self) -> Option<Timing> {
         Some(self.timing)
     }
+    fn avoidance_at(&self, t: f64) -> Option<crate::avoidance::AvoidanceState> {
+        // The avoided path's record at the path time the clock has reached.
+        self.inner.avoidance_at(self.clock(t).0)
+    }
 }
 
 #[cfg(test)]
@@ -2932,7 +2936,8 @@ mod tests {
 
     #[test]
     fn seed001s_nominal_needs_more_than_the_steering_limits() {
-        // Why the seed-001 scenario runs unscaled (its avoidance is the experiment).
+        // Why the seed-001 nominal is not scaled (its avoidance, which acts on it at its own
+        // timing, is the experiment; the avoided path is then scaled).
         let p = Platform::justin();
         let inner = crate::avoidance::Seed001Scenario::new(&p);
         let worst = (0..=2000)

@@ -82,6 +82,13 @@ pub trait Trajectory: Send + Sync {
     fn stops(&self) -> Vec<(f64, f64)> {
         Vec::new()
     }
+    /// The singularity avoidance's record at `t` when the trajectory is a path the avoidance
+    /// was applied to before the run ([`crate::avoidance::AvoidedTrajectory`]), `None`
+    /// otherwise.
+    fn avoidance_at(&self, t: f64) -> Option<crate::avoidance::AvoidanceState> {
+        let _ = t;
+        None
+    }
 }
 
 /// Errors from building or loading a trajectory.

@@ -176,6 +176,11 @@ enum ConfigCmd {
         /// table: node-IDs, drive and encoder units, timing).
         #[arg(long, default_value = "native")]
         profile: Protocol,
+        /// Print an example platform instead (docs/examples): mpo700 (4 fixed wheels, 45 mm
+        /// caster offset, limited steering), three-wheel (fixed, ±170° steering, mirrored
+        /// motors), six-wheel (Justin-like legs, two buses).
+        #[arg(long, value_name = "mpo700|three-wheel|six-wheel")]
+        example: Option<String>,
     },
 }
 
@@ -297,7 +302,7 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
             Ok(0)
         }
         Command::BusLoad(a) => {
-            let p = load_platform_as(a.config.as_deref(), a.profile)?;
+            let p = load_platform_profile(a.config.as_deref(), a.profile)?;
             if a.bitrate == 0 {
                 return Err(CliError::Usage(
                     "--bitrate 0: give the bus bit rate in bit/s, e.g. 1000000".into(),
@@ -337,8 +342,15 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
                 out!("{}", p.to_toml_string());
                 Ok(0)
             }
-            ConfigCmd::Default { profile } => {
-                let mut p = Platform::justin();
+            ConfigCmd::Default { profile, example } => {
+                let mut p = match example.as_deref() {
+                    None => Platform::justin(),
+                    Some(name) => Platform::example(name).ok_or_else(|| {
+                        CliError::Usage(format!(
+                            "--example {name:?}: give mpo700, three-wheel or six-wheel"
+                        ))
+                    })?,
+                };
                 p.protocol = profile;
                 if profile == Protocol::Cia402 {
                     p.cia402 = Some(p.cia402());
@@ -360,6 +372,23 @@ pub(crate) fn load_platform(path: Option<&Path>) -> Result<Platform, CliError> {
 /// The platform file (or the default platform) with the wire profile overridden when
 /// `profile` is given, validated again (the `[cia402]` section must fit the platform).
 pub(crate) fn load_platform_as(
+    path: Option<&Path>,
+    profile: Option<Protocol>,
+) -> Result<Platform, CliError> {
+    let p = load_platform_profile(path, profile)?;
+    if p.buses() > 1 {
+        // Two buses would share the one `--bus` medium (two SYNCs a cycle): refused.
+        return Err(CliError::Usage(format!(
+            "platform `{}` puts wheels on bus 1: running two buses (one `--bus` each) is not implemented yet; put every wheel on `bus = 0` (`rollbase bus-load --config` tells whether they fit)",
+            p.name
+        )));
+    }
+    Ok(p)
+}
+
+/// [`load_platform_as`] for the commands that only read the platform (bus-load): a platform
+/// on two buses is fine there.
+fn load_platform_profile(
     path: Option<&Path>,
     profile: Option<Protocol>,
 ) -> Result<Platform, CliError> {

@@ -155,17 +155,22 @@ impl JointNames {
 }
 
 /// `sensor_msgs/JointState` of a state with the given names (3 per wheel, see [`JointNames`]).
+/// A wheel without a leg ([`rollbase_control::ports::JointState::no_leg`]) has no leg joint:
+/// its steer and drive joints only (its leg name is not used).
 pub fn joint_state(s: &BaseState, names: &[String]) -> JointState {
     let n = s.n.min(MAX_WHEELS);
     let mut position = Vec::with_capacity(3 * n);
     let mut velocity = Vec::with_capacity(3 * n);
-    for j in &s.joints[..n] {
-        position.extend_from_slice(&[j.steer_angle, j.wheel_angle, j.leg]);
-        velocity.extend_from_slice(&[j.steer_rate, j.wheel_speed, j.leg_rate]);
+    let mut name = Vec::with_capacity(3 * n);
+    for (i, j) in s.joints[..n].iter().enumerate() {
+        let k = if j.no_leg { 2 } else { 3 };
+        position.extend_from_slice(&[j.steer_angle, j.wheel_angle, j.leg][..k]);
+        velocity.extend_from_slice(&[j.steer_rate, j.wheel_speed, j.leg_rate][..k]);
+        name.extend(names.iter().skip(3 * i).take(k).cloned());
     }
     JointState {
         header: Header::new(s.log_time_ns, ""),
-        name: names.iter().take(3 * n).cloned().collect(),
+        name,
         position,
         velocity,
         effort: Vec::new(),
@@ -634,6 +639,30 @@ mod tests {
             .names(2)
             .unwrap_err();
         assert!(e.contains("5 joint names given for 2 wheels"), "{e}");
+    }
+
+    #[test]
+    fn joint_states_of_wheels_without_legs_have_no_leg_joint() {
+        let mut s = state();
+        s.joints[0].no_leg = true;
+        let names = JointNames::Default.names(2).unwrap();
+        let j = joint_state(&s, &names);
+        assert_eq!(
+            j.name,
+            [
+                "wheel_1_steer_joint",
+                "wheel_1_drive_joint",
+                "wheel_2_steer_joint",
+                "wheel_2_drive_joint",
+                "wheel_2_leg_joint"
+            ]
+        );
+        assert_eq!(j.position, vec![0.5, 0.0, 0.0, 0.0, 0.45]);
+        assert_eq!(j.velocity, vec![0.0, 3.0, 0.0, 0.0, 0.0]);
+        s.joints[1].no_leg = true;
+        let j = joint_state(&s, &names);
+        assert!(j.name.iter().all(|n| !n.contains("leg")), "{:?}", j.name);
+        assert_eq!((j.position.len(), j.velocity.len()), (4, 4));
     }
 
     #[test]

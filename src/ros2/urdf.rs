@@ -28,11 +28,10 @@ use std::fmt::Write as _;
 /// Width of a wheel in the drawing (m); the platform file has no such field.
 const WHEEL_WIDTH: f64 = 0.05;
 
-/// Whether wheel `i` sits on a movable leg. The one place that decides it: the platform model
-/// has no leg-less wheel yet (issue 25 adds fixed-footprint wheels), so every wheel whose
-/// extension range is not empty has a leg. Switch this to the platform's field then.
+/// Whether wheel `i` sits on a movable leg (the platform file's `wheels[i].leg`: a wheel given
+/// a fixed `lambda` has none).
 pub fn has_leg(p: &Platform, i: usize) -> bool {
-    p.wheels.get(i).is_some_and(|w| w.lambda_max > w.lambda_min)
+    p.wheels.get(i).is_some_and(|w| w.leg)
 }
 
 fn esc(s: &str) -> String {
@@ -151,12 +150,12 @@ pub fn generate_with(
       <material name="leg"/>
     </visual>
   </link>
-  <joint name="{j}" type="continuous">
+  <joint name="{j}" type="{steer_type}">
     <parent link="{leg_link}"/>
     <child link="{steer_link}"/>
     <origin xyz="0 0 0" rpy="0 0 {ma}"/>
     <axis xyz="0 0 1"/>
-    <limit effort="1000" velocity="{v}"/>
+    <limit {steer_limits}effort="1000" velocity="{v}"/>
   </joint>
   <link name="{wheel_link}">
     <visual>
@@ -168,13 +167,25 @@ pub fn generate_with(
   <joint name="{d}" type="continuous">
     <parent link="{steer_link}"/>
     <child link="{wheel_link}"/>
-    <origin xyz="0 0 0" rpy="0 0 0"/>
+    <origin xyz="{trail} 0 0" rpy="0 0 0"/>
     <axis xyz="0 1 0"/>
     <limit effort="1000" velocity="{vw}"/>
   </joint>"#,
             z = f(0.08),
             len = f(0.16),
             j = esc(steer),
+            // A steering range makes the steering joint revolute with its stops; a caster
+            // offset puts the wheel d behind the steering axis (its contact point).
+            steer_type = if w.steer_range.is_some() {
+                "revolute"
+            } else {
+                "continuous"
+            },
+            steer_limits = w
+                .steer_range
+                .map(|[lo, hi]| format!("lower=\"{}\" upper=\"{}\" ", f(lo), f(hi)))
+                .unwrap_or_default(),
+            trail = f(-w.caster_offset),
             ma = f(-a),
             v = f(p.limits.steer_rate),
             r = f(r),
@@ -247,6 +258,28 @@ mod tests {
             p.wheel_radius
         )));
         assert!(has_leg(&p, 0) && !has_leg(&p, 99));
+    }
+
+    #[test]
+    fn a_fixed_footprint_has_no_leg_joint() {
+        let p = Platform::three_wheel();
+        assert!((0..3).all(|i| !has_leg(&p, i)));
+        let u = generate(&p, &JointNames::Default).unwrap();
+        for k in 1..=3 {
+            assert!(
+                u.contains(&format!(
+                    "<joint name=\"wheel_{k}_leg_joint\" type=\"fixed\">"
+                )),
+                "{u}"
+            );
+        }
+        assert!(!u.contains("prismatic"), "{u}");
+        // ±170° stops: revolute steering joints with those limits.
+        assert_eq!(u.matches("type=\"revolute\"").count(), 3, "{u}");
+        assert!(u.contains("lower=\"-2.967060\" upper=\"2.967060\""), "{u}");
+        // The MPO-700-like wheels trail their steering axes by 45 mm.
+        let m = generate(&Platform::mpo700(), &JointNames::Default).unwrap();
+        assert_eq!(m.matches("<origin xyz=\"-0.045000 0 0\"").count(), 4, "{m}");
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! The base service's (`rollbase drive`'s) per-cycle control work on a live command session:
-//! the shaper (live command → reference within every actuator limit), singularity avoidance
-//! on the shaped reference, and the tracking controller (DFL while the reference moves, the
+//! singularity avoidance on the command and the shaper (live command → reference within
+//! every actuator limit; `CycleCore` runs the avoidance before the shaper for live commands,
+//! [`rollbase_control::avoidance`], "Live commands"), and the tracking controller (DFL while the reference moves, the
 //! kinematic controller near rest, switched with hysteresis as `CycleCore` does for live
 //! commands).
 //!
@@ -26,7 +27,7 @@
 //! <max ns> <steps>` (each step between two `Instant` readings, which add a few tens of ns).
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use rollbase_control::avoidance::{Avoidance, AvoidanceConfig};
+use rollbase_control::avoidance::AvoidanceConfig;
 use rollbase_control::dfl::{ControlInput, ControlOutput, DflController};
 use rollbase_control::ideal_plant::IdealPlant;
 use rollbase_control::kinematic::KinematicController;
@@ -96,11 +97,10 @@ struct Step {
     odo: OdometryOutput,
 }
 
-/// Shaper → (avoidance) → controller, as `CycleCore::finish_cycle` runs them for live
+/// (Avoidance →) shaper → controller, as `CycleCore::finish_cycle` runs them for live
 /// commands.
 struct LiveStack {
     shaper: Shaper,
-    avoid: Option<Avoidance>,
     dfl: DflController,
     kin: KinematicController,
     dfl_active: bool,
@@ -112,9 +112,10 @@ impl LiveStack {
     fn new(p: &Platform, avoid: bool, control: bool) -> Self {
         let mut kin = KinematicController::new(p);
         kin.set_termination(false);
+        let mut shaper = Shaper::new(p, Default::default());
+        shaper.set_avoidance(avoid.then(AvoidanceConfig::default));
         let mut s = Self {
-            shaper: Shaper::new(p, Default::default()),
-            avoid: avoid.then(|| Avoidance::new(p, AvoidanceConfig::default())),
+            shaper,
             dfl: DflController::new(p),
             kin,
             dfl_active: false,
@@ -132,9 +133,6 @@ impl LiveStack {
         let r0 = self.shaper.hold_sample();
         self.dfl.reset(p, &r0);
         self.kin.reset(p, &r0);
-        if let Some(a) = self.avoid.as_mut() {
-            a.reset();
-        }
         self.dfl_active = false;
         self.next = 0;
     }
@@ -158,11 +156,7 @@ impl LiveStack {
             self.next += 1;
         }
         let dt = p.dt();
-        let nominal = self.shaper.step();
-        let reference = match self.avoid.as_mut() {
-            Some(a) => a.step(p, &nominal, dt).0,
-            None => nominal,
-        };
+        let reference = self.shaper.step();
         if !self.control {
             return (reference, None);
         }

@@ -1622,8 +1622,15 @@ pub fn run_waypoints(
         .ok_or("the default runtime has no time scaling")?;
     let spline = QuinticSpline::from_specs(&platform, specs).map_err(|e| e.to_string())?;
     let nominal_s = spline.duration();
-    let plan =
-        ScaledTrajectory::plan(&platform, Box::new(spline), cfg).map_err(|e| e.to_string())?;
+    // With the avoidance on, the runtime scales the path the avoidance made before the run.
+    let path: Box<dyn Trajectory> = match o.avoidance.filter(|a| a.enabled) {
+        Some(a) => Box::new(
+            rollbase_control::avoidance::AvoidedTrajectory::plan(&platform, Box::new(spline), a)
+                .map_err(|e| e.to_string())?,
+        ),
+        None => Box::new(spline),
+    };
+    let plan = ScaledTrajectory::plan(&platform, path, cfg).map_err(|e| e.to_string())?;
     let pt = plan_timing(&plan);
     let bound = DURATION_RATIO * (pt.optimal_s + pt.dwell_s);
     let budget = (pt.planned_s.min(bound) + WAYPOINT_RUN_SLACK_S).min(MAX_WAYPOINT_RUN_S);

@@ -55,6 +55,8 @@ pub struct RunOptions {
     /// Serialize the simulator's frames on a bus of this bit rate (`None`: every frame
     /// arrives at its send time, as the native tests always ran).
     pub sim_bitrate: Option<u32>,
+    /// The controller's platform (`None`: Justin's); its `protocol` is set to `profile`.
+    pub platform: Option<Platform>,
 }
 
 impl RunOptions {
@@ -76,6 +78,7 @@ impl RunOptions {
             max_seconds: None,
             profile: Protocol::Native,
             sim_bitrate: None,
+            platform: None,
         }
     }
 
@@ -123,7 +126,7 @@ pub const AFTER_END: std::time::Duration = std::time::Duration::from_millis(500)
 /// Builds the controller core, the simulator and the virtual bus for `opts` (the core is not
 /// armed yet); also returns the trajectory's duration (s).
 pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstepBus, f64), String> {
-    let mut platform = Platform::justin();
+    let mut platform = opts.platform.clone().unwrap_or_else(Platform::justin);
     platform.protocol = opts.profile;
     let traj: Box<dyn rollbase_control::trajectory::Trajectory> =
         match (&opts.waypoint_specs, &opts.waypoints) {
@@ -319,6 +322,8 @@ pub struct LiveOptions {
     pub initial: Option<rollbase_vcan_sim::InitialState>,
     /// Give up after this many seconds of platform time.
     pub max_seconds: f64,
+    /// The platform (`None`: Justin's); its `protocol` is set to `profile`.
+    pub platform: Option<Platform>,
 }
 
 impl Default for LiveOptions {
@@ -330,13 +335,14 @@ impl Default for LiveOptions {
             profile: Protocol::Native,
             initial: None,
             max_seconds: 120.0,
+            platform: None,
         }
     }
 }
 
 /// The live core (not armed yet), the simulator and the virtual bus of `opts`.
 pub fn build_live(opts: &LiveOptions) -> (CycleCore, Simulator, VirtualLockstepBus) {
-    let mut platform = Platform::justin();
+    let mut platform = opts.platform.clone().unwrap_or_else(Platform::justin);
     platform.protocol = opts.profile;
     let rt = opts.runtime.clone();
     let core = CycleCore::new_live(platform.clone(), rt).expect("valid");
@@ -479,4 +485,127 @@ pub fn steering_turn_while_slow(records: &[CycleRecord], wheel_radius: f64, whee
         }
     }
     worst
+}
+
+/// Runs `opts` in lockstep with every CAN bus of the platform (`wheels[i].bus`) on its own
+/// virtual medium: each bus gets its own SYNC and setpoints from the core
+/// ([`CycleCore::start_cycle_buses`]), the simulator's devices see only their bus's frames
+/// ([`Simulator::on_frame_on`]) and answer on it. `lose` = (bus, t): from `t` (s) on, that
+/// bus's medium carries nothing either way and reports no error (a cable cut behind the
+/// controller's transceiver). The cycle is
+/// `rollbase_control::runtime::lockstep_cycle`'s, bus by bus.
+pub fn run_buses(opts: &RunOptions, lose: Option<(usize, f64)>) -> RunOutcome {
+    use rollbase_control::runtime::LockstepBus;
+    use rollbase_driver::frame::{CanFrame, FrameBuf};
+    use std::time::Duration;
+    let (mut core, mut sim, _, duration) = build(opts).expect("valid setup");
+    let platform = core.platform().clone();
+    let nb = core.buses();
+    let mut media: Vec<VirtualLockstepBus> = (0..nb as u64)
+        .map(|b| VirtualLockstepBus::new(opts.bus_faults, opts.seed ^ 0x5EED ^ (b << 32)))
+        .collect();
+    let period = platform.dt();
+    let window = core.config().feedback_window.clamp(0.0, period);
+    let seconds = opts.max_seconds.unwrap_or(duration + opts.slack_s);
+    let max_cycles = (seconds * platform.cycle_hz) as u64;
+    let mut outs = [FrameBuf::new(), FrameBuf::new()];
+    let mut pending: Vec<(Duration, CanFrame)> = Vec::new();
+    let mut rx: Vec<(usize, f64, CanFrame)> = Vec::new();
+    let mut records = Vec::new();
+    let mut summary = RunSummary::new(opts.scenario.name());
+    let lost = |b: usize, t: f64| lose.is_some_and(|(lb, at)| lb == b && t >= at);
+    // The simulator's frames up to `until`, each on its device's bus.
+    let flush = |sim: &mut Simulator,
+                 media: &mut [VirtualLockstepBus],
+                 pending: &mut Vec<(Duration, CanFrame)>,
+                 until: Duration| {
+        sim.drain_tx(&mut |t, f| pending.push((t, f)));
+        pending.sort_by_key(|(t, _)| *t);
+        let mut sent = 0;
+        for (t, f) in pending.iter() {
+            if *t > until {
+                break;
+            }
+            let b = sim.bus_of_node((f.id() & 0x7F) as u8).min(media.len() - 1);
+            if !lost(b, t.as_secs_f64()) {
+                media[b].set_time(*t);
+                let _ = media[b].peer_send(f);
+            }
+            sent += 1;
+        }
+        pending.drain(..sent);
+    };
+    let deliver = |sim: &mut Simulator, media: &mut [VirtualLockstepBus]| {
+        for (b, m) in media.iter_mut().enumerate() {
+            while let Ok(Some(f)) = m.peer_recv() {
+                sim.on_frame_on(b, f.timestamp, &f.frame);
+            }
+        }
+    };
+    let send =
+        |core: &mut CycleCore, media: &mut [VirtualLockstepBus], outs: &[FrameBuf], t: f64| {
+            for (b, m) in media.iter_mut().enumerate() {
+                for f in outs[b].as_slice() {
+                    // A lost bus takes the controller's frames without a word (no send
+                    // error): only the silence of its devices tells.
+                    if !lost(b, t) && m.controller_send(f).is_err() {
+                        core.report_bus_error();
+                    }
+                }
+            }
+        };
+    core.arm();
+    for k in 0..max_cycles {
+        if Some(k) == opts.stop_at_cycle {
+            core.request_stop();
+        }
+        let t0 = Duration::from_secs_f64(k as f64 * period);
+        let t_win = Duration::from_secs_f64(k as f64 * period + window);
+        sim.advance_to(t0);
+        let truth = {
+            let t = sim.truth();
+            Some((t.pose, t.legs))
+        };
+        flush(&mut sim, &mut media, &mut pending, t0);
+        for m in media.iter_mut() {
+            m.set_time(t0);
+        }
+        core.start_cycle_buses(t0.as_secs_f64(), &mut outs[..nb]);
+        send(&mut core, &mut media, &outs, t0.as_secs_f64());
+        deliver(&mut sim, &mut media);
+        sim.advance_to(t_win);
+        flush(&mut sim, &mut media, &mut pending, t_win);
+        rx.clear();
+        for (b, m) in media.iter_mut().enumerate() {
+            m.set_time(t_win);
+            while let Ok(Some(f)) = m.controller_recv() {
+                rx.push((b, f.timestamp.as_secs_f64(), f.frame));
+            }
+        }
+        rx.sort_by(|a, b| a.1.total_cmp(&b.1));
+        for (b, t, f) in &rx {
+            core.on_frame_on(*b, f, *t);
+        }
+        core.finish_cycle_buses(t_win.as_secs_f64(), &mut outs[..nb]);
+        send(&mut core, &mut media, &outs, t_win.as_secs_f64());
+        deliver(&mut sim, &mut media);
+        let rec = core.record_mut();
+        rec.truth = truth;
+        rec.timing.period_us = period * 1e6;
+        summary.update(core.record());
+        records.push(*core.record());
+        if core.done() {
+            break;
+        }
+    }
+    RunOutcome {
+        records,
+        summary,
+        report: LockstepReport::default(),
+        platform,
+        final_drive_states: Vec::new(),
+        after_end: Vec::new(),
+        final_state: Some(*core.base_state()),
+        timing: None,
+    }
 }

@@ -123,17 +123,29 @@ fn seed000_sends_the_same_frames_time_scaled_and_as_given() {
 }
 
 #[test]
-fn seed001_sends_the_same_frames_time_scaled_and_as_given() {
-    // The avoidance experiment (its default controller and avoidance) does not saturate
-    // either: the same frames, bit for bit.
-    same_frames_scaled_and_raw(Scenario::Seed001);
+fn seed001_with_its_avoidance_is_time_scaled_whether_the_scaling_is_on_or_off() {
+    // The avoidance experiment (its default controller and avoidance): the avoidance acts on
+    // the path before the run and the avoided path is always time-scaled
+    // (`rollbase_control::avoidance`, "Pre-planned trajectories"), with the default margins
+    // when the scaling is off. So the same frames, bit for bit, and the run is slowed: the
+    // nominal asks 5× the steering acceleration limit.
+    let scaled = same_frames_scaled_and_raw(Scenario::Seed001);
+    let timing = scaled.timing.expect("a time-scaled trajectory");
+    assert!(
+        timing.executed_duration_s > timing.nominal_duration_s
+            && timing.max_ratio <= 1.0 + rollbase_control::timescale::VERIFY_TOLERANCE,
+        "{timing:?}"
+    );
 }
 
 /// Runs the scenario with the time scaling (the default) and without it, asserts that every
 /// frame sent, every command and every reference are the same bit for bit, and returns the
 /// scaled run.
 fn same_frames_scaled_and_raw(sc: Scenario) -> rollbase_tests::RunOutcome {
-    let scaled = rollbase_tests::run(&rollbase_tests::RunOptions::new(sc));
+    let mut scaled_opts = rollbase_tests::RunOptions::new(sc);
+    scaled_opts.runtime.time_scaling =
+        Some(rollbase_control::timescale::TimeScaleConfig::default());
+    let scaled = rollbase_tests::run(&scaled_opts);
     let mut raw_opts = rollbase_tests::RunOptions::new(sc);
     raw_opts.runtime.time_scaling = None;
     let raw = rollbase_tests::run(&raw_opts);

@@ -112,6 +112,8 @@ pub struct ModuleFirmware {
     status_dirty: bool,
     stop_since: Option<Duration>,
     stats: FirmwareStats,
+    /// The module has a leg encoder (and answers SYNC with FEEDBACK_B).
+    leg: bool,
 }
 
 /// Clamps `v` into the declared range of `kind.signal` (non-finite → 0).
@@ -142,7 +144,15 @@ impl ModuleFirmware {
             status_dirty: true,
             stop_since: None,
             stats: FirmwareStats::default(),
+            leg: true,
         }
+    }
+
+    /// The same module without a leg encoder: it answers a SYNC with FEEDBACK_A only (a
+    /// wheel without a leg has no leg extension to report; its motor currents go unreported).
+    pub fn without_leg(mut self) -> Self {
+        self.leg = false;
+        self
     }
 
     /// The module's CAN node.
@@ -333,9 +343,11 @@ impl ModuleFirmware {
             }),
         };
         self.counter_a = (self.counter_a + 1) & 0x0F;
-        self.counter_b = (self.counter_b + 1) & 0x0F;
         self.send(a, out);
-        self.send(b, out);
+        if self.leg {
+            self.counter_b = (self.counter_b + 1) & 0x0F;
+            self.send(b, out);
+        }
         self.stats.syncs_answered += 1;
     }
 

@@ -91,6 +91,30 @@
 //! into the world, `Δθ = a` (series expansion for |a| < 1e-6). Motor speeds and steering angles
 //! use the average over the step (trapezoid), legs move linearly.
 //!
+//! # Wheels without legs, off-centred wheels, steering stops, polarity, coupling
+//!
+//! A wheel without a leg is a leg held at both stops at once (λ_min = λ_max): both of its
+//! equations constrain the twist, always.
+//!
+//! An off-centred wheel (caster offset d > 0) touches the ground at C_i = P_i − d h_i
+//! (h = (cos φ, sin φ)), and what it imposes is the body's velocity at C_i: its rolling
+//! velocity plus the sweep of its steering, c_i = v_i h_i + d φ̇_i h⊥_i (the contact point
+//! itself, moving on the body, must not slip). The equations above then hold at C_i instead
+//! of P_i: the tangential row is g_i = (−sin α_i, cos α_i, e_r,i · C_i), the radial equation
+//! carries ω (sin α_i C_ix − cos α_i C_iy), a blocked leg's rows are (1, 0, −C_iy) and
+//! (0, 1, C_ix). A wheel steered at rest thus pushes the body (and slips): the model of the
+//! scrub the controller avoids. This model is independent of `rollbase_control::model`'s.
+//!
+//! A wheel with a steering range has mechanical stops: the steering angle stops at them
+//! (and the steering motor with it); every step that presses a stop is counted
+//! ([`PlantTruth::steer_stop_hits`]).
+//!
+//! Motors mounted mirrored (`drive_polarity`, `steer_polarity` = −1) turn the wheel the other
+//! way round than their own positive direction; a coupled module (`coupling` c) turns the
+//! wheel by c·Δφ when only the steering turns: the wheel spins at ω = p_d ω_motor + c φ̇.
+//! Setpoints are the motors' and so are the encoders (the steering encoder sits on the
+//! steering motor's side: it reads p_s φ); [`PlantTruth`] holds the joints' true values.
+//!
 //! # Encoders
 //!
 //! Per module: absolute steering angle (wrapped to (−π, π] by `rollbase_control::angle::wrap`),
@@ -420,6 +444,11 @@ pub struct PlantTruth {
     pub drive_torque: [f64; MAX_WHEELS],
     /// Steer torque at each steering axis (N·m).
     pub steer_torque: [f64; MAX_WHEELS],
+    /// Steering angles φ_i (rad), not wrapped: how far each wheel has turned from its start
+    /// (the angle a steering range bounds).
+    pub steer_unwrapped: [f64; MAX_WHEELS],
+    /// Plant steps in which a steering motor pressed a wheel against its stop.
+    pub steer_stop_hits: [u64; MAX_WHEELS],
 }
 
 /// Effective motor limits of the plant (after applying defaults and derivations).
@@ -500,6 +529,21 @@ pub struct Plant {
     encoder_stuck: [bool; MAX_WHEELS],
     steer_offset: [f64; MAX_WHEELS],
     drive_gain: [f64; MAX_WHEELS],
+    /// Some wheel is not a centred, endless, uncoupled, positively mounted wheel on a leg:
+    /// the general model (module docs) runs; otherwise the original one, unchanged.
+    general: bool,
+    caster: [f64; MAX_WHEELS],
+    steer_lo: [f64; MAX_WHEELS],
+    steer_hi: [f64; MAX_WHEELS],
+    drive_pol: [f64; MAX_WHEELS],
+    steer_pol: [f64; MAX_WHEELS],
+    coupling: [f64; MAX_WHEELS],
+    fixed: [bool; MAX_WHEELS],
+    /// Each wheel's contact point offset d·h_i over the current step (general model).
+    sweep_at: [[f64; 2]; MAX_WHEELS],
+    joint_steer_rate: [f64; MAX_WHEELS],
+    joint_wheel_speed: [f64; MAX_WHEELS],
+    steer_stop_hits: [u64; MAX_WHEELS],
 }
 
 fn quantize(x: f64, q: f64) -> f64 {
@@ -597,7 +641,29 @@ impl Plant {
         let mut lmax = [0.0; MAX_WHEELS];
         let mut legs = [0.0; MAX_WHEELS];
         let mut steer = [0.0; MAX_WHEELS];
+        let mut caster = [0.0; MAX_WHEELS];
+        let mut steer_lo = [f64::NEG_INFINITY; MAX_WHEELS];
+        let mut steer_hi = [f64::INFINITY; MAX_WHEELS];
+        let mut drive_pol = [1.0; MAX_WHEELS];
+        let mut steer_pol = [1.0; MAX_WHEELS];
+        let mut coupling = [0.0; MAX_WHEELS];
+        let mut fixed = [false; MAX_WHEELS];
+        let mut general = false;
         for (i, w) in platform.wheels.iter().enumerate() {
+            caster[i] = w.caster_offset;
+            if let Some((lo, hi)) = w.steer_limits() {
+                (steer_lo[i], steer_hi[i]) = (lo, hi);
+            }
+            drive_pol[i] = f64::from(w.drive_polarity);
+            steer_pol[i] = f64::from(w.steer_polarity);
+            coupling[i] = w.coupling;
+            fixed[i] = !w.leg;
+            general |= !w.leg
+                || w.caster_offset != 0.0
+                || w.steer_range.is_some()
+                || w.drive_polarity != 1
+                || w.steer_polarity != 1
+                || w.coupling != 0.0;
             (sin_a[i], cos_a[i]) = w.alpha.sin_cos();
             lmin[i] = w.lambda_min;
             lmax[i] = w.lambda_max;
@@ -619,6 +685,16 @@ impl Plant {
                     format!("initial.steer[{i}]"),
                     s,
                     "must be a finite angle in radians",
+                ));
+            }
+            if s < steer_lo[i] || s > steer_hi[i] {
+                return Err(invalid(
+                    format!("initial.steer[{i}]"),
+                    s,
+                    format!(
+                        "must lie in the wheel's steering range [{}, {}] rad",
+                        steer_lo[i], steer_hi[i]
+                    ),
                 ));
             }
             steer[i] = s;
@@ -663,6 +739,18 @@ impl Plant {
             steer_offset: [0.0; MAX_WHEELS],
             drive_gain: [cfg.drive_gain; MAX_WHEELS],
             cfg,
+            general,
+            caster,
+            steer_lo,
+            steer_hi,
+            drive_pol,
+            steer_pol,
+            coupling,
+            fixed,
+            sweep_at: [[0.0; 2]; MAX_WHEELS],
+            joint_steer_rate: [0.0; MAX_WHEELS],
+            joint_wheel_speed: [0.0; MAX_WHEELS],
+            steer_stop_hits: [0; MAX_WHEELS],
         };
         // Fill the whole latency buffer with the initial reading so that early reads are sane.
         let first = plant.sample();
@@ -740,10 +828,37 @@ impl Plant {
                 sp.steer_enabled,
             );
             let phi0 = self.steer[i];
-            let phi1 = phi0 + 0.5 * (s0 + s1) * dt;
-            let v = self.r * 0.5 * (w0 + w1);
-            let (sp_, cp) = (0.5 * (phi0 + phi1)).sin_cos();
-            contact[i] = [v * cp, v * sp_];
+            let mut s1 = s1;
+            let phi1 = if self.general {
+                // The steering joint turns at p_s × the motor's rate; a stop holds it (and the
+                // motor pressing against it).
+                let mut phi1 = phi0 + self.steer_pol[i] * 0.5 * (s0 + s1) * dt;
+                let (lo, hi) = (self.steer_lo[i], self.steer_hi[i]);
+                if phi1 > hi || phi1 < lo {
+                    phi1 = phi1.clamp(lo, hi);
+                    self.steer_stop_hits[i] += 1;
+                    s1 = 0.0;
+                }
+                let rate = (phi1 - phi0) / dt;
+                let spin = self.drive_pol[i] * 0.5 * (w0 + w1) + self.coupling[i] * rate;
+                let v = self.r * spin;
+                let d = self.caster[i];
+                let (sm, cm) = (0.5 * (phi0 + phi1)).sin_cos();
+                // What the wheel imposes on the body at its contact point: rolling plus the
+                // steering's sweep (module docs).
+                contact[i] = [v * cm - d * rate * sm, v * sm + d * rate * cm];
+                self.sweep_at[i] = [d * cm, d * sm];
+                self.joint_steer_rate[i] = self.steer_pol[i] * s1;
+                self.joint_wheel_speed[i] =
+                    self.drive_pol[i] * w1 + self.coupling[i] * self.joint_steer_rate[i];
+                phi1
+            } else {
+                let phi1 = phi0 + 0.5 * (s0 + s1) * dt;
+                let v = self.r * 0.5 * (w0 + w1);
+                let (sp_, cp) = (0.5 * (phi0 + phi1)).sin_cos();
+                contact[i] = [v * cp, v * sp_];
+                phi1
+            };
             // Torques (for the reported currents).
             let wacc = (w1 - w0) / dt;
             let rr = self.cfg.rolling_resistance * self.mass / self.n as f64 * GRAVITY * self.r;
@@ -770,7 +885,11 @@ impl Plant {
             if remaining <= 0.0 {
                 break;
             }
-            let sol = self.solve(&contact);
+            let sol = if self.general {
+                self.solve_general(&contact)
+            } else {
+                self.solve(&contact)
+            };
             let mut t_seg = remaining;
             let mut hit: Option<(usize, f64)> = None;
             for i in 0..self.n {
@@ -914,7 +1033,12 @@ impl Plant {
         let c = &self.cfg;
         let mut out = [SensorReading::default(); MAX_WHEELS];
         for (i, o) in out.iter_mut().enumerate().take(self.n) {
-            let steer = self.steer[i] + self.steer_offset[i] + c.steer_noise * self.rng.gaussian();
+            let joint = if self.general {
+                self.steer_pol[i] * self.steer[i]
+            } else {
+                self.steer[i]
+            };
+            let steer = joint + self.steer_offset[i] + c.steer_noise * self.rng.gaussian();
             o.steer_angle = angle::wrap(quantize(angle::wrap(steer), c.steer_quantum));
             o.steer_rate = quantize(
                 self.steer_rate[i] + c.steer_rate_noise * self.rng.gaussian(),
@@ -959,12 +1083,99 @@ impl Plant {
             leg_rates: self.leg_rates,
             leg_blocked: self.leg_blocked,
             steer,
-            steer_rate: self.steer_rate,
-            wheel_speed: self.wheel_speed,
+            steer_rate: if self.general {
+                self.joint_steer_rate
+            } else {
+                self.steer_rate
+            },
+            wheel_speed: if self.general {
+                self.joint_wheel_speed
+            } else {
+                self.wheel_speed
+            },
             slip: self.slip,
             wheel_slip: self.wheel_slip,
             drive_torque: self.drive_torque,
             steer_torque: self.steer_torque,
+            steer_unwrapped: self.steer,
+            steer_stop_hits: self.steer_stop_hits,
+        }
+    }
+
+    /// [`Plant::solve`] for the general model (module docs): rows at the contact points
+    /// C_i = P_i − d h_i, wheels without legs always blocked.
+    fn solve_general(&self, contact: &[[f64; 2]; MAX_WHEELS]) -> Solution {
+        let mut blocked = self.fixed;
+        let mut x = Vector3::zeros();
+        let mut leg_rates = [0.0; MAX_WHEELS];
+        // Contact point of wheel i (body frame).
+        let at = |i: usize| {
+            let l = self.legs[i];
+            [
+                l * self.cos_a[i] - self.sweep_at[i][0],
+                l * self.sin_a[i] - self.sweep_at[i][1],
+            ]
+        };
+        for _ in 0..=self.n {
+            let mut nm = Matrix3::zeros();
+            let mut b = Vector3::zeros();
+            for i in 0..self.n {
+                let (c, s) = (self.cos_a[i], self.sin_a[i]);
+                let p = at(i);
+                let [cx, cy] = contact[i];
+                if blocked[i] {
+                    let g1 = Vector3::new(1.0, 0.0, -p[1]);
+                    let g2 = Vector3::new(0.0, 1.0, p[0]);
+                    nm += g1 * g1.transpose() + g2 * g2.transpose();
+                    b += g1 * cx + g2 * cy;
+                } else {
+                    let g = Vector3::new(-s, c, c * p[0] + s * p[1]);
+                    nm += g * g.transpose();
+                    b += g * (-s * cx + c * cy);
+                }
+            }
+            x = solve_psd3(nm, b);
+            let mut changed = false;
+            for i in 0..self.n {
+                if blocked[i] {
+                    leg_rates[i] = 0.0;
+                    continue;
+                }
+                let (c, s) = (self.cos_a[i], self.sin_a[i]);
+                let p = at(i);
+                let [cx, cy] = contact[i];
+                let lr = c * cx + s * cy - (c * x[0] + s * x[1] + x[2] * (s * p[0] - c * p[1]));
+                leg_rates[i] = lr;
+                let out = lr > 0.0 && self.legs[i] >= self.lmax[i] - STOP_EPS;
+                let inw = lr < 0.0 && self.legs[i] <= self.lmin[i] + STOP_EPS;
+                if out || inw {
+                    blocked[i] = true;
+                    leg_rates[i] = 0.0;
+                    changed = true;
+                }
+            }
+            if !changed {
+                break;
+            }
+        }
+        let twist = Twist {
+            vx: x[0],
+            vy: x[1],
+            omega: x[2],
+        };
+        let mut wheel_slip = [0.0; MAX_WHEELS];
+        for i in 0..self.n {
+            let (c, s) = (self.cos_a[i], self.sin_a[i]);
+            let p = at(i);
+            let ux = twist.vx - twist.omega * p[1] + leg_rates[i] * c;
+            let uy = twist.vy + twist.omega * p[0] + leg_rates[i] * s;
+            wheel_slip[i] = (ux - contact[i][0]).hypot(uy - contact[i][1]);
+        }
+        Solution {
+            twist,
+            leg_rates,
+            blocked,
+            wheel_slip,
         }
     }
 }
@@ -1463,5 +1674,159 @@ mod tests {
         plant.step(DT, &sp);
         let t = plant.truth();
         assert!(t.pose.x.is_finite() && t.wheel_speed[0] == 0.0 && t.steer_rate[0] == 0.0);
+    }
+
+    /// Drives `p`'s wheels for `seconds` with the motor setpoints that realise the body twist
+    /// `tw` (legs still) at the wheels' true angles: off-centred wheels by the caster law
+    /// (written out here, independently of the controller's), centred ones steered to their
+    /// direction of travel; polarity and coupling undone as the link does. Returns the plant.
+    fn drive_twist(p: &Platform, tw: Twist, seconds: f64, steer0: [f64; MAX_WHEELS]) -> Plant {
+        let mut init = InitialState::nominal(p);
+        init.steer = steer0;
+        let mut plant = Plant::new(p, PlantConfig::ideal(), init, 7).unwrap();
+        let dt = 0.001;
+        for _ in 0..(seconds / dt) as usize {
+            let t = plant.truth();
+            let mut sp = [MotorSetpoint::default(); MAX_WHEELS];
+            for (i, w) in p.wheels.iter().enumerate() {
+                let (sa, ca) = w.alpha.sin_cos();
+                let l = t.legs[i];
+                let u = [tw.vx - tw.omega * l * sa, tw.vy + tw.omega * l * ca];
+                let phi = t.steer_unwrapped[i];
+                let (sphi, cphi) = phi.sin_cos();
+                let along = u[0] * cphi + u[1] * sphi;
+                let across = -u[0] * sphi + u[1] * cphi;
+                let rate = if w.caster_offset > 0.0 {
+                    across / w.caster_offset - tw.omega
+                } else {
+                    10.0 * across.atan2(along.abs()) * along.signum()
+                };
+                let spin = along / p.wheel_radius - w.coupling * rate;
+                sp[i] = MotorSetpoint {
+                    wheel_speed: f64::from(w.drive_polarity) * spin,
+                    steer_rate: f64::from(w.steer_polarity) * rate,
+                    drive_enabled: true,
+                    steer_enabled: true,
+                };
+            }
+            plant.step(dt, &sp);
+        }
+        plant
+    }
+
+    #[test]
+    fn off_centred_wheels_move_the_body_by_the_caster_law_without_slip() {
+        let p = Platform::mpo700();
+        let tw = Twist {
+            vx: 0.2,
+            vy: 0.1,
+            omega: 0.3,
+        };
+        // Wheels start across their directions of travel: the caster law turns them as the
+        // platform moves, without slip once the motors have caught up.
+        let plant = drive_twist(&p, tw, 2.0, [1.5, -2.0, 0.4, 3.0, 0.0, 0.0, 0.0, 0.0]);
+        let t = plant.truth();
+        assert!((t.twist_body.vx - tw.vx).abs() < 2e-3, "{:?}", t.twist_body);
+        assert!((t.twist_body.vy - tw.vy).abs() < 2e-3, "{:?}", t.twist_body);
+        assert!(
+            (t.twist_body.omega - tw.omega).abs() < 5e-3,
+            "{:?}",
+            t.twist_body
+        );
+        assert!(t.slip < 2e-3, "slip {}", t.slip);
+        // Steering one wheel at rest scrubs: the body moves although no wheel rolls.
+        let mut plant = Plant::new(&p, PlantConfig::ideal(), InitialState::nominal(&p), 7).unwrap();
+        let mut sp = [MotorSetpoint::default(); MAX_WHEELS];
+        sp[0] = MotorSetpoint {
+            steer_rate: 3.0,
+            steer_enabled: true,
+            drive_enabled: true,
+            ..MotorSetpoint::default()
+        };
+        for _ in 0..300 {
+            plant.step(0.001, &sp);
+        }
+        let t = plant.truth();
+        assert!(t.pose.x.hypot(t.pose.y) > 1e-3 && t.slip > 0.01, "{t:?}");
+        // Without the offset the same steering at rest moves nothing.
+        let mut centred = p.clone();
+        for w in &mut centred.wheels {
+            w.caster_offset = 0.0;
+        }
+        let mut plant = Plant::new(
+            &centred,
+            PlantConfig::ideal(),
+            InitialState::nominal(&centred),
+            7,
+        )
+        .unwrap();
+        for _ in 0..300 {
+            plant.step(0.001, &sp);
+        }
+        assert!(plant.truth().pose.x.hypot(plant.truth().pose.y) < 1e-12);
+    }
+
+    #[test]
+    fn wheels_without_legs_keep_their_footprint_and_mirrored_coupled_motors_are_undone() {
+        let mut p = Platform::three_wheel();
+        p.wheels[2].coupling = 0.5;
+        let tw = Twist {
+            vx: -0.1,
+            vy: 0.25,
+            omega: -0.4,
+        };
+        let plant = drive_twist(&p, tw, 3.0, [0.0; MAX_WHEELS]);
+        let t = plant.truth();
+        assert!((t.twist_body.vx - tw.vx).abs() < 2e-3, "{:?}", t.twist_body);
+        assert!((t.twist_body.vy - tw.vy).abs() < 2e-3, "{:?}", t.twist_body);
+        assert!(
+            (t.twist_body.omega - tw.omega).abs() < 5e-3,
+            "{:?}",
+            t.twist_body
+        );
+        assert!(t.slip < 2e-3, "slip {}", t.slip);
+        for i in 0..3 {
+            assert_eq!(t.legs[i], 0.3);
+            assert!(t.leg_blocked[i]);
+        }
+        // The mirrored module's encoders read its motors: the opposite of the joints.
+        let s = plant.sensors();
+        assert!((s[1].steer_angle + t.steer[1]).abs() < 1e-9);
+        assert!((s[1].steer_rate + t.steer_rate[1]).abs() < 1e-9);
+        // The coupled module's rolling motor turns less than the wheel by 0.5 × φ̇.
+        let motor = s[2].wheel_speed;
+        assert!((t.wheel_speed[2] - (motor + 0.5 * t.steer_rate[2])).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_steering_stop_holds_the_wheel_and_counts() {
+        let p = Platform::three_wheel();
+        let mut plant = Plant::new(&p, PlantConfig::ideal(), InitialState::nominal(&p), 7).unwrap();
+        let mut sp = [MotorSetpoint::default(); MAX_WHEELS];
+        sp[0] = MotorSetpoint {
+            steer_rate: 4.0,
+            steer_enabled: true,
+            drive_enabled: true,
+            ..MotorSetpoint::default()
+        };
+        for _ in 0..2000 {
+            plant.step(0.001, &sp);
+        }
+        let t = plant.truth();
+        let stop = 170f64.to_radians();
+        assert!(
+            (t.steer_unwrapped[0] - stop).abs() < 1e-12,
+            "{}",
+            t.steer_unwrapped[0]
+        );
+        assert!(t.steer_stop_hits[0] > 100 && t.steer_stop_hits[1] == 0);
+        assert_eq!(t.steer_rate[0], 0.0);
+        // Justin's wheels have no stops.
+        let j = Platform::justin();
+        let mut plant = Plant::new(&j, PlantConfig::ideal(), InitialState::nominal(&j), 7).unwrap();
+        for _ in 0..2000 {
+            plant.step(0.001, &sp);
+        }
+        assert!(plant.truth().steer_unwrapped[0] > 7.0);
     }
 }

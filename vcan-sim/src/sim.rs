@@ -149,7 +149,11 @@ pub struct Simulator {
     nodes: Vec<u8>,
     outbox: Vec<(u8, CanFrame)>,
     bitrate: Option<u32>,
-    bus_free: Duration,
+    /// Per bus (`wheels[i].bus`), when its wire is free again.
+    bus_free: [Duration; 2],
+    /// Per wheel, its bus; per CAN node, the bus of its device.
+    wheel_bus: [u8; MAX_WHEELS],
+    node_bus: [u8; 128],
     schedule: FaultSchedule,
     events: Vec<Event>,
     next_event: usize,
@@ -239,7 +243,15 @@ impl Simulator {
             Protocol::Native => Modules::Native(
                 nodes_vec
                     .iter()
-                    .map(|&n| ModuleFirmware::new(n, cfg.firmware))
+                    .zip(&platform.wheels)
+                    .map(|(&n, w)| {
+                        let f = ModuleFirmware::new(n, cfg.firmware);
+                        if w.leg {
+                            f
+                        } else {
+                            f.without_leg()
+                        }
+                    })
                     .collect(),
             ),
             Protocol::Cia402 => Modules::CanOpen(
@@ -291,6 +303,24 @@ impl Simulator {
             jitter: Duration::from_secs_f64(f.jitter),
         };
         let n = platform.n();
+        let mut wheel_bus = [0u8; MAX_WHEELS];
+        for (b, w) in wheel_bus.iter_mut().zip(&platform.wheels) {
+            *b = w.bus.min(1);
+        }
+        let mut node_bus = [0u8; 128];
+        match &modules {
+            Modules::Native(fw) => {
+                for (i, f) in fw.iter().enumerate() {
+                    node_bus[usize::from(f.node() & 0x7F)] = wheel_bus[i.min(MAX_WHEELS - 1)];
+                }
+            }
+            Modules::CanOpen(devs) => {
+                for d in devs {
+                    node_bus[usize::from(d.node() & 0x7F)] =
+                        wheel_bus[d.wheel().min(MAX_WHEELS - 1)];
+                }
+            }
+        }
         Ok(Self {
             plant,
             modules,
@@ -298,7 +328,9 @@ impl Simulator {
             nodes: nodes_vec,
             outbox: Vec::with_capacity(32),
             bitrate: cfg.bitrate,
-            bus_free: Duration::ZERO,
+            bus_free: [Duration::ZERO; 2],
+            wheel_bus,
+            node_bus,
             schedule: cfg.faults,
             events,
             next_event: 0,
@@ -436,12 +468,14 @@ impl Simulator {
         let mut out = std::mem::take(&mut self.outbox);
         if let Some(rate) = self.bitrate {
             // The lowest id wins arbitration; equal ids keep their production order.
+            // Each bus is its own wire (a platform on one bus uses only bus 0's).
             out.sort_by_key(|(_, f)| f.id());
-            let mut t = send_at.max(self.bus_free);
+            let mut t = [send_at.max(self.bus_free[0]), send_at.max(self.bus_free[1])];
             for &(node, f) in &out {
+                let b = self.bus_of_node(node);
                 let bits = rollbase_driver::busload::frame_bits(f.len());
-                t += Duration::from_nanos(u64::from(bits) * 1_000_000_000 / u64::from(rate));
-                self.transmit(t, node, f);
+                t[b] += Duration::from_nanos(u64::from(bits) * 1_000_000_000 / u64::from(rate));
+                self.transmit(t[b], node, f);
             }
             self.bus_free = t;
         } else {
@@ -612,6 +646,22 @@ impl Simulator {
     /// (FEEDBACK_A/B to a SYNC, STATUS on a state change) are queued with send time
     /// `now + response_latency`.
     pub fn on_frame(&mut self, now: Duration, frame: &CanFrame) {
+        self.receive(None, now, frame);
+    }
+
+    /// [`Simulator::on_frame`] for a frame on bus `bus` (`wheels[i].bus`): only the devices
+    /// of the wheels on that bus see it (each bus has its own SYNC).
+    pub fn on_frame_on(&mut self, bus: usize, now: Duration, frame: &CanFrame) {
+        self.receive(Some(bus), now, frame);
+    }
+
+    /// The bus the device with CAN node `node` is on (its frames carry the node in the low
+    /// 7 bits of their id, in both profiles).
+    pub fn bus_of_node(&self, node: u8) -> usize {
+        usize::from(self.node_bus[usize::from(node & 0x7F)])
+    }
+
+    fn receive(&mut self, bus: Option<usize>, now: Duration, frame: &CanFrame) {
         self.advance_to(now);
         let now = self.now;
         self.stats.frames_received += 1;
@@ -623,7 +673,11 @@ impl Simulator {
         let send_at = now + self.response_latency;
         match &mut self.modules {
             Modules::Native(fw) => {
-                for (f, reading) in fw.iter_mut().zip(sensors.iter()) {
+                for (i, (f, reading)) in fw.iter_mut().zip(sensors.iter()).enumerate() {
+                    if bus.is_some_and(|b| usize::from(self.wheel_bus[i.min(MAX_WHEELS - 1)]) != b)
+                    {
+                        continue;
+                    }
                     let node = f.node();
                     let outbox = &mut self.outbox;
                     f.handle_frame(now, frame, reading, &mut |fr| outbox.push((node, fr)));
@@ -631,8 +685,12 @@ impl Simulator {
             }
             Modules::CanOpen(devs) => {
                 for d in devs.iter_mut() {
+                    let w = d.wheel().min(MAX_WHEELS - 1);
+                    if bus.is_some_and(|b| usize::from(self.wheel_bus[w]) != b) {
+                        continue;
+                    }
                     let node = d.node();
-                    let s = sensors[d.wheel().min(MAX_WHEELS - 1)];
+                    let s = sensors[w];
                     let outbox = &mut self.outbox;
                     d.handle_frame(now, frame, &s, &mut |fr| outbox.push((node, fr)));
                 }

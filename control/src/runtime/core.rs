@@ -9,10 +9,10 @@ use crate::command::{check_legs, check_motion, Rejection};
 use crate::dfl::{alignment_command, ControlInput, DflController, TrackingController};
 use crate::kinematic::KinematicController;
 use crate::limits::guard_command;
-use crate::link::{Link, Update, WheelFault};
+use crate::link::{Buses, Update, WheelFault};
 use crate::model::wheel_positions;
 use crate::odometry::{EncoderResolution, Odometry};
-use crate::platform::Platform;
+use crate::platform::{Platform, MAX_BUSES};
 use crate::ports::{
     BaseState, CommandEvent, CommandKind, CommandStats, JointState, Limiting, ModuleDiagnostics,
     OdometryState, ShapingState,
@@ -90,14 +90,28 @@ fn check_speeds(p: &Platform, traj: &dyn Trajectory) -> Result<(), RuntimeError>
     Ok(())
 }
 
-/// The trajectory the core follows: time-scaled into the limits
-/// ([`RuntimeConfig::time_scaling`]), unless it already is or scaling is off (then it must
-/// stay within the speed limits as given).
+/// The trajectory the core follows: with the avoidance on, the avoided path time-scaled
+/// into the limits; otherwise time-scaled into the limits ([`RuntimeConfig::time_scaling`]),
+/// unless it already is or scaling is off (then it must stay within the speed limits as
+/// given).
 fn prepare_trajectory(
     p: &Platform,
     trajectory: Box<dyn Trajectory>,
     cfg: &RuntimeConfig,
 ) -> Result<Box<dyn Trajectory>, RuntimeError> {
+    // With the avoidance on, it acts on the path before the run, and the avoided path (a
+    // path the avoidance made, not the one given) is always time-scaled within every limit,
+    // with the configured margins or, when the scaling is off, the default ones
+    // (`crate::avoidance`, "Pre-planned trajectories"); a trajectory already time-scaled is
+    // avoided and scaled again. A configuration that fails validation is off, as online.
+    if let Some(a) = cfg.avoidance.filter(|a| a.enabled && a.validate(p).is_ok()) {
+        let avoided = crate::avoidance::AvoidedTrajectory::plan(p, trajectory, a)?;
+        return Ok(Box::new(crate::timescale::ScaledTrajectory::plan(
+            p,
+            Box::new(avoided),
+            cfg.time_scaling.unwrap_or_default(),
+        )?));
+    }
     if trajectory.time_scale(0.0).is_some() {
         return Ok(trajectory);
     }
@@ -231,7 +245,7 @@ pub struct CycleCore {
     cfg: RuntimeConfig,
     n: usize,
     nodes: [u8; MAX_WHEELS],
-    link: Link,
+    link: Buses,
     /// An arm was asked for while the link was not ready (CiA 402 devices booting).
     arm_pending: bool,
     /// Cycle the supervisor was last armed in: the age of a stream that never delivered.
@@ -266,11 +280,16 @@ pub struct CycleCore {
     diag: [WheelDiag; MAX_WHEELS],
     wheel_angle: [f64; MAX_WHEELS],
     prev_wheel_speed: [f64; MAX_WHEELS],
-    /// Frame bits of each of the last second's cycles (ring) and their sum.
-    bus_bits: Vec<u32>,
+    /// The last steering angle of each wheel with a steering range, inside its range (turns
+    /// counted; kept across re-arms).
+    steer_turns: [Option<f64>; MAX_WHEELS],
+    /// Frame bits of each of the last second's cycles (ring, per bus) and their sum.
+    bus_bits: [Vec<u32>; MAX_BUSES],
     bus_bits_at: usize,
-    bus_bits_sum: u64,
-    bits_this_cycle: u32,
+    bus_bits_sum: [u64; MAX_BUSES],
+    bits_this_cycle: [u32; MAX_BUSES],
+    /// The bus the frames pushed now belong to (for their records and bit counts).
+    cur_bus: usize,
     state: BaseState,
 }
 
@@ -365,7 +384,7 @@ impl CycleCore {
         legs: &[f64],
     ) -> Self {
         let n = platform.n();
-        let link = Link::new(&platform, cfg.counter_policy);
+        let link = Buses::new(&platform, cfg.counter_policy);
         let mut nodes = [0u8; MAX_WHEELS];
         let mut steer_nodes = [0u8; MAX_WHEELS];
         let mut leg_nodes = [0u8; MAX_WHEELS];
@@ -434,10 +453,12 @@ impl CycleCore {
             diag,
             wheel_angle: [0.0; MAX_WHEELS],
             prev_wheel_speed: [0.0; MAX_WHEELS],
-            bus_bits: vec![0; window],
+            steer_turns: [None; MAX_WHEELS],
+            bus_bits: std::array::from_fn(|_| vec![0; window]),
             bus_bits_at: 0,
-            bus_bits_sum: 0,
-            bits_this_cycle: 0,
+            bus_bits_sum: [0; MAX_BUSES],
+            bits_this_cycle: [0; MAX_BUSES],
+            cur_bus: 0,
             state,
             platform,
             cfg,
@@ -470,9 +491,15 @@ impl CycleCore {
         self.link.rx_stats()
     }
 
-    /// The wire side of the cycle (e.g. the CiA 402 master's devices, for reports).
-    pub fn link(&self) -> &Link {
+    /// The wire side of the cycle, one link per bus (e.g. the CiA 402 masters' devices, for
+    /// reports).
+    pub fn link(&self) -> &Buses {
         &self.link
+    }
+
+    /// Number of CAN buses the platform's wheels are on.
+    pub fn buses(&self) -> usize {
+        self.link.count()
     }
 
     /// True while an arm waits for the link (CiA 402 devices still booting).
@@ -575,7 +602,7 @@ impl CycleCore {
         self.arm_pending = false;
         self.fault_reset_cycles = FAULT_RESET_CYCLES + 1;
         self.armed_cycle = self.cycle;
-        if matches!(self.link, Link::Cia402(_)) {
+        if self.link.is_cia402() {
             // Devices may have been rebooted to get here: samples from before are not
             // evidence of anything now, and the streams' ages count from the arm.
             self.fb = [WheelFeedback::default(); MAX_WHEELS];
@@ -693,26 +720,45 @@ impl CycleCore {
 
     /// Starts the cycle at time `t` (s): writes the frames to send now into `out` (cleared
     /// first), SYNC first; with the CiA 402 profile NMT commands, the master's heartbeat and
-    /// SDO requests follow when due.
+    /// SDO requests follow when due. On a platform with two buses every bus's frames go into
+    /// `out` (as if on one medium): use [`CycleCore::start_cycle_buses`] there.
     pub fn start_cycle(&mut self, t: f64, out: &mut FrameBuf) {
+        self.start_cycle_buses(t, std::slice::from_mut(out));
+    }
+
+    /// [`CycleCore::start_cycle`] with one buffer per bus: bus `b`'s frames (its own SYNC
+    /// first) into `outs[b]`, each cleared first.
+    pub fn start_cycle_buses(&mut self, t: f64, outs: &mut [FrameBuf]) {
         let mut rec = CycleRecord::new(self.cycle, t, self.n);
         rec.nodes = self.nodes;
         self.record = rec;
         self.rejected_this_cycle = 0;
-        self.bits_this_cycle = 0;
+        self.bits_this_cycle = [0; MAX_BUSES];
         self.now = t;
-        out.clear();
-        self.link.start_cycle(self.cycle, t, out);
-        for &f in out.as_slice() {
-            self.push_tx(t, &f);
+        for o in outs.iter_mut() {
+            o.clear();
         }
+        self.link.start_cycle(self.cycle, t, outs);
+        self.record_sent(t, outs);
+    }
+
+    /// Records every frame of `outs` (buffer b = bus b) as sent at `t`.
+    fn record_sent(&mut self, t: f64, outs: &[FrameBuf]) {
+        for (b, o) in outs.iter().enumerate() {
+            self.cur_bus = b;
+            for &f in o.as_slice() {
+                self.push_tx(t, &f);
+            }
+        }
+        self.cur_bus = 0;
     }
 
     fn push_tx(&mut self, t: f64, f: &CanFrame) {
         if f.id() == 0x080 {
             self.sync_time = t;
         }
-        self.bits_this_cycle = self.bits_this_cycle.saturating_add(frame_bits(f.len()));
+        let b = self.cur_bus.min(MAX_BUSES - 1);
+        self.bits_this_cycle[b] = self.bits_this_cycle[b].saturating_add(frame_bits(f.len()));
         let mut data = [0u8; 8];
         data[..f.len()].copy_from_slice(f.data());
         self.record.push_tx(FrameRecord {
@@ -721,11 +767,15 @@ impl CycleCore {
             len: f.len() as u8,
             data,
             error: None,
+            bus: b as u8,
         });
     }
 
     /// The wheel whose module (native) or device (CiA 402) uses `node`.
     fn wheel_of_node(&self, node: u8) -> Option<usize> {
+        if node == 0 {
+            return None;
+        }
         (0..self.n).find(|&i| {
             [Role::Steer, Role::Drive, Role::Leg]
                 .iter()
@@ -733,20 +783,34 @@ impl CycleCore {
         })
     }
 
-    /// Takes one received frame (its timestamp in s on the run's time base).
+    /// Takes one received frame (its timestamp in s on the run's time base). On a platform
+    /// with two buses it goes to the bus its node is on ([`CycleCore::on_frame_on`] when the
+    /// bus it arrived on is known).
     pub fn on_frame(&mut self, frame: &CanFrame, t: f64) {
+        self.on_frame_from(None, frame, t);
+    }
+
+    /// Takes one frame received on bus `bus`.
+    pub fn on_frame_on(&mut self, bus: usize, frame: &CanFrame, t: f64) {
+        self.on_frame_from(Some(bus), frame, t);
+    }
+
+    fn on_frame_from(&mut self, bus: Option<usize>, frame: &CanFrame, t: f64) {
         let mut data = [0u8; 8];
         data[..frame.len()].copy_from_slice(frame.data());
         self.record.timing.frames_in += 1;
-        self.bits_this_cycle = self.bits_this_cycle.saturating_add(frame_bits(frame.len()));
+        let node = (frame.id() & 0x7F) as u8;
+        let b = bus
+            .unwrap_or_else(|| self.link.bus_of_node(node))
+            .min(MAX_BUSES - 1);
+        self.bits_this_cycle[b] = self.bits_this_cycle[b].saturating_add(frame_bits(frame.len()));
         self.now = self.now.max(t);
-        let result = self.link.on_frame(frame, t);
+        let result = self.link.on_frame(bus, frame, t);
         let error = match &result {
             Ok(_) => None,
             Err(kind) => {
                 self.rejected_this_cycle += 1;
                 // Standard-frame ids carry the node in their low 7 bits (native and CANopen).
-                let node = (frame.id() & 0x7F) as u8;
                 if let Some(w) = self.wheel_of_node(node) {
                     self.diag[w].counters.rejected += 1;
                 }
@@ -759,6 +823,7 @@ impl CycleCore {
             len: frame.len() as u8,
             data,
             error,
+            bus: b as u8,
         });
         let Ok(updates) = result else { return };
         let cycle = self.cycle;
@@ -781,6 +846,20 @@ impl CycleCore {
                         d.counters.late += 1;
                     }
                     let fb = &mut self.fb[wheel];
+                    // Within a steering range the angle is kept inside it, turn by turn
+                    // (crate::angle::SteerRange): from the reading nearest the range's
+                    // centre, then by continuity.
+                    let angle = match crate::angle::SteerRange::of(&self.platform.wheels[wheel]) {
+                        None => angle,
+                        Some(r) => {
+                            let a = match self.steer_turns[wheel] {
+                                Some(prev) => prev + crate::angle::diff(angle, prev),
+                                None => r.first(angle),
+                            };
+                            self.steer_turns[wheel] = Some(a);
+                            a
+                        }
+                    };
                     if let (Some(old), Some(c)) = (fb.steer, fb.steer_at.cycle) {
                         fb.prev_steer = Some((old, fb.steer_seq, c, fb.steer_on_time));
                     }
@@ -845,10 +924,16 @@ impl CycleCore {
                 m.wheels[i].leg = self.platform.wheels[i].lambda_nominal;
             }
             let age_of = |a: &Arrival| a.cycle.map_or(never, |c| self.cycle - c);
+            // A wheel without a leg has no leg stream: its steering stream stands in.
+            let has_leg = self.platform.wheels[i].leg;
+            let leg_at = if has_leg { &fb.leg_at } else { &fb.steer_at };
             let streams = [
                 (age_of(&fb.steer_at), Role::Steer),
                 (age_of(&fb.drive_at), Role::Drive),
-                (age_of(&fb.leg_at), Role::Leg),
+                (
+                    age_of(leg_at),
+                    if has_leg { Role::Leg } else { Role::Steer },
+                ),
             ];
             let (oldest_age, oldest_role) =
                 streams.iter().copied().fold((0u64, Role::Steer), |acc, s| {
@@ -865,7 +950,7 @@ impl CycleCore {
             // delivered (random loss of one frame is not silence).
             let newest_age = streams.iter().map(|s| s.0).min().unwrap_or(never);
             alive[i] = newest_age.min(u64::from(u32::MAX)) as u32;
-            let newest = fb.steer_at.time.min(fb.drive_at.time).min(fb.leg_at.time);
+            let newest = fb.steer_at.time.min(fb.drive_at.time).min(leg_at.time);
             if oldest == f64::NEG_INFINITY || newest < oldest {
                 oldest = newest;
             }
@@ -876,10 +961,17 @@ impl CycleCore {
     /// Runs the control step at time `t` (s) and writes the setpoint frames into `out`
     /// (cleared first; with the CiA 402 profile SDO requests that became due follow);
     /// returns how many were written. The cycle's record is then available from
-    /// [`CycleCore::record`], its state from [`CycleCore::base_state`].
+    /// [`CycleCore::record`], its state from [`CycleCore::base_state`]. On a platform with
+    /// two buses every bus's frames go into `out`: use [`CycleCore::finish_cycle_buses`].
     ///
     /// The body is the loop itself, one named stage per line.
     pub fn finish_cycle(&mut self, t: f64, out: &mut FrameBuf) -> usize {
+        self.finish_cycle_buses(t, std::slice::from_mut(out))
+    }
+
+    /// [`CycleCore::finish_cycle`] with one buffer per bus (bus `b`'s setpoints into
+    /// `outs[b]`, each cleared first); returns how many frames were written in all.
+    pub fn finish_cycle_buses(&mut self, t: f64, out: &mut [FrameBuf]) -> usize {
         let dt = self.platform.dt();
         self.now = self.now.max(t);
         self.arm_when_ready();
@@ -1104,8 +1196,12 @@ impl CycleCore {
         }
     }
 
-    /// Singularity avoidance of this cycle's reference (seed 001). A trajectory's reference
-    /// goes through [`Avoidance::step`] while tracking. Live commands were avoided before the
+    /// Singularity avoidance of this cycle's reference (seed 001). A trajectory was avoided
+    /// before the run ([`crate::avoidance::AvoidedTrajectory`], built by
+    /// `prepare_trajectory` whenever the avoidance is on): its sample is the avoided
+    /// reference, and the record is the filter's state at the clock's path time; a
+    /// trajectory without that record would go through [`Avoidance::step`] while tracking
+    /// (none does when the configuration is valid). Live commands were avoided before the
     /// shaper ([`crate::avoidance`], "Live commands"): the shaped reference is followed as it
     /// is, and the record says whether the command's ICR was moved out of a field.
     fn avoid(&mut self, nominal: &ReferenceSample, dt: f64) -> (ReferenceSample, AvoidanceRecord) {
@@ -1117,6 +1213,28 @@ impl CycleCore {
                 rec.d_start = a.d_start;
             }
             return (*nominal, rec);
+        }
+        let tracking = self.sup.state() == SupervisorState::Tracking;
+        if let Source::Trajectory(s) = &self.source {
+            // A path avoided before the run: the sample is the avoided reference; the record
+            // is the avoidance's at the path time the clock has reached.
+            let t_ref = self.reference_time().min(s.traj.duration());
+            if let Some(st) = s.traj.avoidance_at(t_ref) {
+                let mut rec = icr_record(nominal, &self.wheel_xy[..self.n]);
+                if tracking {
+                    let mut d = [0.0; 3 + MAX_WHEELS];
+                    d.copy_from_slice(st.deviation.as_slice());
+                    rec = AvoidanceRecord {
+                        icr_body: st.icr_body,
+                        active: st.active,
+                        min_distance: st.min_distance,
+                        nearest_wheel: st.nearest_wheel,
+                        d_start: st.d_start,
+                        deviation: d,
+                    };
+                }
+                return (*nominal, rec);
+            }
         }
         match (&mut self.avoidance, self.sup.state()) {
             (Some(a), SupervisorState::Tracking) => {
@@ -1153,7 +1271,8 @@ impl CycleCore {
         // Alignment and the start check need every module's feedback at least once.
         let reported = self.fb[..self.n]
             .iter()
-            .all(|f| f.steer.is_some() && f.drive.is_some() && f.leg.is_some());
+            .zip(&self.platform.wheels)
+            .all(|(f, w)| f.steer.is_some() && f.drive.is_some() && (f.leg.is_some() || !w.leg));
         let start_legs = if reported {
             let mut worst = (0usize, meas.wheels[0].leg, nominal.z[3]);
             let r0 = match &self.source {
@@ -1509,7 +1628,7 @@ impl CycleCore {
         cmd: &Command,
         enable: bool,
         brake: bool,
-        out: &mut FrameBuf,
+        out: &mut [FrameBuf],
     ) -> usize {
         // A re-arm asks the modules to clear latched faults (e.g. their setpoint watchdog
         // after the bus was gone) in the setpoints of the next few cycles.
@@ -1529,7 +1648,9 @@ impl CycleCore {
         // What the drives are being told, for the following-error check of the next cycles:
         // a wheel told to disable or brake is going to rest.
         self.sup.note_command(cmd, &[enable && !brake; MAX_WHEELS]);
-        out.clear();
+        for o in out.iter_mut() {
+            o.clear();
+        }
         self.link.finish_cycle(t, &self.setpoints[..self.n], out);
         let settled = matches!(
             self.sup.state(),
@@ -1543,11 +1664,8 @@ impl CycleCore {
         {
             self.link.release(out);
         }
-        let k = out.len();
-        for &f in out.as_slice() {
-            self.push_tx(t, &f);
-        }
-        k
+        self.record_sent(t, out);
+        out.iter().map(FrameBuf::len).sum()
     }
 
     /// Fills the state port's value of this cycle.
@@ -1559,13 +1677,16 @@ impl CycleCore {
         alive: [u32; MAX_WHEELS],
         dt: f64,
     ) {
-        // Bus load over the last second.
-        let bits = self.bits_this_cycle;
-        let slot = &mut self.bus_bits[self.bus_bits_at];
-        self.bus_bits_sum = self.bus_bits_sum - u64::from(*slot) + u64::from(bits);
-        *slot = bits;
-        self.bus_bits_at = (self.bus_bits_at + 1) % self.bus_bits.len();
-        let window_s = self.bus_bits.len() as f64 * dt;
+        // Bus load over the last second, per bus.
+        let window = self.bus_bits[0].len();
+        for b in 0..MAX_BUSES {
+            let bits = self.bits_this_cycle[b];
+            let slot = &mut self.bus_bits[b][self.bus_bits_at];
+            self.bus_bits_sum[b] = self.bus_bits_sum[b] - u64::from(*slot) + u64::from(bits);
+            *slot = bits;
+        }
+        self.bus_bits_at = (self.bus_bits_at + 1) % window;
+        let window_s = window as f64 * dt;
         let s = &mut self.state;
         s.cycle = self.cycle;
         s.t = t;
@@ -1593,6 +1714,7 @@ impl CycleCore {
                 wheel_speed: w.wheel_speed,
                 leg: w.leg,
                 leg_rate: w.leg_rate,
+                no_leg: !self.platform.wheels[i].leg,
             };
             let d = &mut self.diag[i];
             let watchdog = match self.link.wheel_fault(i) {
@@ -1615,7 +1737,11 @@ impl CycleCore {
             d.counters.state = self.record.module_state[i];
             s.diagnostics.modules[i] = d.counters;
         }
-        s.diagnostics.bus_load = self.bus_bits_sum as f64 / (self.cfg.bitrate as f64 * window_s);
+        for b in 0..MAX_BUSES {
+            s.diagnostics.bus_loads[b] =
+                self.bus_bits_sum[b] as f64 / (self.cfg.bitrate as f64 * window_s);
+        }
+        s.diagnostics.bus_load = s.diagnostics.bus_loads[0].max(s.diagnostics.bus_loads[1]);
         s.state = self.sup.state();
         s.reason = self.sup.reason();
         match &self.source {

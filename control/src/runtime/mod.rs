@@ -134,6 +134,22 @@ impl RuntimeConfig {
                 ),
             });
         }
+        if let (ControllerKind::Dfl, Some((i, w))) = (
+            self.controller,
+            p.wheels.iter().enumerate().find(|(_, w)| w.off_centred()),
+        ) {
+            // The DFL's decoupling (seed 000 eq. 23, crate::dfl) is derived for centred
+            // steering, where each wheel's angle is a function of ż. With an offset the angles
+            // are states of their own (crate::model, "Off-centred steering").
+            return Err(RuntimeError::Option {
+                field: "controller",
+                value: "dfl".into(),
+                reason: format!(
+                    "the DFL is derived for centred steering, but wheels[{i}].caster_offset = {} m: use the kinematic controller (`--controller kinematic`), which commands off-centred wheels by the exact caster law",
+                    Num(w.caster_offset)
+                ),
+            });
+        }
         self.supervisor
             .validate(dt)
             .map_err(|(field, value, reason)| RuntimeError::Option {
@@ -141,6 +157,15 @@ impl RuntimeConfig {
                 value,
                 reason,
             })
+    }
+
+    /// The default controller for a platform: the DFL (seed 000's), or the kinematic
+    /// controller on a platform with off-centred wheels (which the DFL does not cover).
+    pub fn for_platform(mut self, p: &crate::platform::Platform) -> Self {
+        if p.has_caster_offset() {
+            self.controller = ControllerKind::Kinematic;
+        }
+        self
     }
 }
 
@@ -179,6 +204,10 @@ pub enum RuntimeError {
     /// stop), or would last too long slowed into the limits.
     #[error(transparent)]
     TimeScale(#[from] crate::timescale::TimeScaleError),
+    /// The avoidance applied to the trajectory before the run did not return to it
+    /// ([`crate::avoidance::AvoidedTrajectory`]).
+    #[error(transparent)]
+    Avoidance(#[from] crate::avoidance::AvoidanceError),
     /// The trajectory's duration is not a finite time the runtime can check and run.
     #[error("the trajectory lasts {} s: it must be a finite time of at most {} s (10 h); split longer runs", Num(*duration), crate::trajectory::MAX_WAYPOINT_TIME_S)]
     Duration {

@@ -93,7 +93,8 @@ pub struct Cia402Wheel {
     pub drive_node: u8,
     /// Node-ID of the steering drive.
     pub steer_node: u8,
-    /// Node-ID of the leg's CiA 406 linear encoder.
+    /// Node-ID of the leg's CiA 406 linear encoder; 0 for a wheel without a leg (no
+    /// encoder: the wheel has a fixed footprint).
     pub leg_node: u8,
     /// Steering angle φ (rad) at steering position 0 (the homing offset).
     #[serde(default)]
@@ -266,11 +267,13 @@ impl Cia402Config {
         }
     }
 
-    /// Every device as (wheel index, role, node), wheel by wheel.
+    /// Every device as (wheel index, role, node), wheel by wheel (a wheel without a leg,
+    /// `leg_node = 0`, has no leg encoder).
     pub fn devices(&self) -> impl Iterator<Item = (usize, Role, u8)> + '_ {
         self.wheels.iter().enumerate().flat_map(|(i, w)| {
             [Role::Drive, Role::Steer, Role::Leg]
                 .into_iter()
+                .filter(move |&r| !(r == Role::Leg && w.leg_node == 0))
                 .map(move |r| (i, r, w.node(r)))
         })
     }
@@ -304,6 +307,10 @@ impl Cia402Config {
             ] {
                 let path = format!("cia402.wheels[{i}].{field}");
                 let n = w.node(role);
+                if role == Role::Leg && n == 0 {
+                    // No leg encoder: a wheel without a leg (the platform checks which).
+                    continue;
+                }
                 if !node_ok(n) {
                     return Err(Invalid::new(path, n, "must be a node-ID in 1..=127"));
                 }

@@ -1,0 +1,117 @@
+//! Two buses (issue 25): the six-wheel example (wheels 1–3 on bus 0, 4–6 on bus 1), each
+//! bus on its own virtual medium with its own SYNC, both wire profiles; the bus load per
+//! bus; one bus lost → a controlled stop of the whole base.
+
+use rollbase_control::runtime::ControllerKind;
+use rollbase_control::scenario::Scenario;
+use rollbase_control::{Platform, Protocol};
+use rollbase_tests::{
+    assert_commands_within_limits, assert_controlled_stop_from, assert_tracking_bounds, run_buses,
+    RunOptions, RunOutcome,
+};
+
+fn opts(profile: Protocol) -> RunOptions {
+    let mut o = RunOptions::new(Scenario::Seed000).with_controller(ControllerKind::Dfl);
+    if profile == Protocol::Cia402 {
+        o = o.cia402();
+    }
+    o.platform = Some(Platform::six_wheel());
+    o
+}
+
+fn check_two_buses(name: &str, out: &RunOutcome) {
+    let s = &out.summary;
+    println!("{name}: {}", s.to_json());
+    assert_tracking_bounds(s, name);
+    assert_eq!(s.rejected_frames, 0, "{name}: a clean bus rejects nothing");
+    assert_commands_within_limits(out);
+    // Every cycle: one SYNC per bus, each wheel's setpoints on its own bus only.
+    for r in out.records.iter().filter(|r| r.cycle > 10).take(500) {
+        let syncs: Vec<u8> = r.tx[..r.n_tx]
+            .iter()
+            .filter(|f| f.id == 0x080)
+            .map(|f| f.bus)
+            .collect();
+        assert_eq!(syncs, vec![0, 1], "{name}: cycle {} SYNCs", r.cycle);
+        for f in &r.tx[..r.n_tx] {
+            if let Some(w) = wheel_of_node(&out.platform, (f.id & 0x7F) as u8) {
+                let want = out.platform.wheels[w].bus;
+                assert_eq!(f.bus, want, "{name}: frame {:#x} on the wrong bus", f.id);
+            }
+        }
+    }
+}
+
+/// The wheel whose module (native) or device (CiA 402) has CAN node `node`.
+fn wheel_of_node(p: &Platform, node: u8) -> Option<usize> {
+    match p.protocol {
+        Protocol::Native => p.wheels.iter().position(|w| w.node == node),
+        Protocol::Cia402 => p.cia402().wheels.iter().position(|d| {
+            node != 0 && (d.drive_node == node || d.steer_node == node || d.leg_node == node)
+        }),
+    }
+}
+
+fn bus_loads(profile: Protocol) -> [f64; 2] {
+    let mut o = opts(profile);
+    o.max_seconds = Some(3.0);
+    let out = run_buses(&o, None);
+    out.final_state.expect("state").diagnostics.bus_loads
+}
+
+#[test]
+fn six_wheels_on_two_buses_run_seed000_native() {
+    let out = run_buses(&opts(Protocol::Native), None);
+    check_two_buses("six-wheel native", &out);
+}
+
+#[test]
+fn six_wheels_on_two_buses_run_seed000_cia402() {
+    let out = run_buses(&opts(Protocol::Cia402), None);
+    check_two_buses("six-wheel cia402", &out);
+}
+
+#[test]
+fn bus_load_is_measured_per_bus() {
+    for profile in [Protocol::Native, Protocol::Cia402] {
+        let [b0, b1] = bus_loads(profile);
+        println!("{profile}: bus loads {b0:.3} {b1:.3}");
+        // Three wheels each: the same traffic on both, well above nothing.
+        assert!(b0 > 0.05 && b1 > 0.05, "{profile}: {b0} {b1}");
+        assert!((b0 - b1).abs() < 0.1 * b0, "{profile}: {b0} {b1}");
+    }
+}
+
+#[test]
+fn one_bus_lost_stops_the_whole_base() {
+    for profile in [Protocol::Native, Protocol::Cia402] {
+        let lose_at = 20.0;
+        let out = run_buses(&opts(profile), Some((1, lose_at)));
+        let from = (lose_at * out.platform.cycle_hz) as u64;
+        let fault = out
+            .records
+            .iter()
+            .find(|r| {
+                r.cycle >= from && r.state == rollbase_control::supervisor::SupervisorState::Fault
+            })
+            .unwrap_or_else(|| panic!("{profile}: no fault after bus 1 was lost"));
+        println!(
+            "{profile}: fault at cycle {} ({:?})",
+            fault.cycle, fault.reason
+        );
+        assert!(
+            fault.cycle < from + 50,
+            "{profile}: detected at cycle {}",
+            fault.cycle
+        );
+        assert_controlled_stop_from(&out, fault.cycle);
+        // The wheels on the bus that is still there are brought to rest too.
+        let last = out.records.last().unwrap();
+        for i in 0..3 {
+            assert_eq!(
+                last.command.wheels[i].wheel_speed, 0.0,
+                "{profile}: wheel {i}"
+            );
+        }
+    }
+}
