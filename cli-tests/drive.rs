@@ -554,8 +554,12 @@ fn drive_script(forward_until: f64) -> Vec<String> {
 }
 
 fn sigterm_while_driving(profile: &'static str) {
+    signal_while_driving(profile, libc::SIGTERM, "SIGTERM");
+}
+
+fn signal_while_driving(profile: &'static str, sig: libc::c_int, name: &str) {
     let _serial = serial();
-    let dir = scratch(profile);
+    let dir = scratch(&format!("{profile}-{name}"));
     let record = dir.join("x.mcap");
     let (_bridge, mut sim, url) = start_platform(profile);
     let mut drive = start_drive(&url, profile, &record);
@@ -569,7 +573,7 @@ fn sigterm_while_driving(profile: &'static str) {
     drive.wait_for("state: tracking");
     // Past the forward, rotation and leg phases, into the second forward one.
     std::thread::sleep(Duration::from_millis(5500));
-    drive.signal(libc::SIGTERM);
+    drive.signal(sig);
     let (status, stdout) = drive.wait();
     drop(stdin);
     let stderr = drive.stderr();
@@ -578,7 +582,10 @@ fn sigterm_while_driving(profile: &'static str) {
         Some(0),
         "{profile}: {status}\n{stdout}\n{stderr}"
     );
-    assert!(stderr.contains("SIGTERM: controlled stop"), "{stderr}");
+    assert!(
+        stderr.contains(&format!("{name}: controlled stop")),
+        "{stderr}"
+    );
     let s = summary(&stdout);
     assert_eq!(s["supervisor_final_state"], "stopped", "{s}");
     assert!(s["fault_reason"].is_null(), "{s}");
@@ -628,6 +635,12 @@ fn native_sigterm_while_driving_is_a_controlled_stop_then_exit_0_with_the_record
 #[test]
 fn cia402_sigterm_while_driving_is_a_controlled_stop_then_exit_0_with_the_recording_finished() {
     sigterm_while_driving("cia402");
+}
+
+/// A closed terminal or ssh session (SIGHUP) must not kill the driver (issue 27).
+#[test]
+fn native_sighup_while_driving_is_a_controlled_stop_then_exit_0_with_the_recording_finished() {
+    signal_while_driving("native", libc::SIGHUP, "SIGHUP");
 }
 
 #[test]

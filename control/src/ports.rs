@@ -232,6 +232,10 @@ pub struct CommandStats {
     pub ignored: u64,
     /// Why the last rejected command was rejected.
     pub last_rejection: Option<crate::command::Rejection>,
+    /// Motion commands dropped before the cycle saw them because the command queue was
+    /// full (a source sending faster than the cycle takes them); set by the real-time
+    /// driver from its command channel ([`crate::runtime::command_channel`]).
+    pub dropped: u64,
 }
 
 /// What the shaper is doing with the live command.

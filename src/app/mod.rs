@@ -454,37 +454,49 @@ pub(crate) enum SignalAction {
     End,
 }
 
-/// SIGINT (Ctrl-C) and SIGTERM (what service managers send) both set `stop`, once; the run
-/// then stops in a controlled way and finishes its outputs. A second signal is reported and
-/// otherwise ignored (a stop in progress is not cut short). Returns a flag that tells
+/// Every signal a terminal or a service manager sends to end a process — SIGINT (Ctrl-C),
+/// SIGTERM (systemd, `kill`), SIGHUP (the terminal or the ssh session closed) and SIGQUIT
+/// (`Ctrl-\`) — sets `stop`, once; the run then stops in a controlled way and finishes its
+/// outputs. A second signal is reported and otherwise ignored (a stop in progress is not cut
+/// short). SIGUSR1 and SIGUSR2 are ignored from the start (`main`). Returns a flag that tells
 /// whether a signal came.
 pub(crate) fn install_signals(stop: Arc<AtomicBool>, action: SignalAction) -> Arc<AtomicBool> {
     let came = Arc::new(AtomicBool::new(false));
     let came2 = came.clone();
+    // The handlers are installed here, before this returns (a signal that comes right after
+    // must find them); a thread then waits for them.
+    let Ok(rt) = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    else {
+        tracing::error!(
+            "cannot start the signal handler; Ctrl-C, SIGTERM, SIGHUP and SIGQUIT end the process at once"
+        );
+        return came;
+    };
+    let signals = {
+        use tokio::signal::unix::{signal, SignalKind};
+        let _in_runtime = rt.enter();
+        (
+            signal(SignalKind::interrupt()),
+            signal(SignalKind::terminate()),
+            signal(SignalKind::hangup()),
+            signal(SignalKind::quit()),
+        )
+    };
+    let (Ok(mut int), Ok(mut term), Ok(mut hup), Ok(mut quit)) = signals else {
+        tracing::error!("cannot listen for SIGINT/SIGTERM/SIGHUP/SIGQUIT");
+        return came;
+    };
     std::thread::spawn(move || {
-        let Ok(rt) = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()
-        else {
-            tracing::error!(
-                "cannot start the signal handler; Ctrl-C and SIGTERM end the process at once"
-            );
-            return;
-        };
         rt.block_on(async {
-            use tokio::signal::unix::{signal, SignalKind};
-            let (Ok(mut int), Ok(mut term)) = (
-                signal(SignalKind::interrupt()),
-                signal(SignalKind::terminate()),
-            ) else {
-                tracing::error!("cannot listen for SIGINT/SIGTERM");
-                return;
-            };
             let mut first = true;
             loop {
                 let name = tokio::select! {
                     _ = int.recv() => "SIGINT",
                     _ = term.recv() => "SIGTERM",
+                    _ = hup.recv() => "SIGHUP",
+                    _ = quit.recv() => "SIGQUIT",
                 };
                 if first {
                     match action {

@@ -90,8 +90,11 @@ impl LockstepBus for VirtualLockstepBus {
 pub struct LockstepReport {
     /// Cycles run.
     pub cycles: u64,
-    /// Wall-clock compute time of each cycle's control step (µs), for reports only.
-    pub compute_us: Vec<f64>,
+    /// Wall-clock compute times of the cycles' control steps, for reports only (a fixed-size
+    /// histogram: a run of any length uses the same memory).
+    pub compute: super::TimeHistogram,
+    /// Their sum (s).
+    pub compute_total_s: f64,
     /// Wall time of the whole run (s).
     pub wall_s: f64,
 }
@@ -354,10 +357,7 @@ pub fn run_lockstep_with(
     stop: &mut dyn FnMut(u64) -> bool,
     sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
 ) -> LockstepReport {
-    let mut report = LockstepReport {
-        compute_us: Vec::with_capacity(max_cycles.min(1 << 20) as usize),
-        ..Default::default()
-    };
+    let mut report = LockstepReport::default();
     let wall = std::time::Instant::now();
     let mut st = LockstepState::new(core);
     core.arm();
@@ -396,7 +396,8 @@ pub fn run_lockstep_with(
             ..Default::default()
         };
         lockstep_cycle(&mut st, core, bus, peer, &mut hooks);
-        report.compute_us.push(spent.as_secs_f64() * 1e6);
+        report.compute.record_us(spent.as_secs_f64() * 1e6);
+        report.compute_total_s += spent.as_secs_f64();
         sink(core.record(), core.wheel_xy());
         report.cycles = k + 1;
         if core.done() {

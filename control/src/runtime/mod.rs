@@ -22,13 +22,16 @@
 //! `try_send` (a full channel drops the record and counts it: the cycle never blocks on IO).
 //!
 //! The module is split by job: [`core`] (the cycle without IO), [`lockstep`] (virtual time),
-//! [`realtime`] (the cycle thread) and [`summary`] (the figures of a run).
+//! [`realtime`] (the cycle thread), [`command_channel`] (commands into the cycle thread, with
+//! a priority lane for stop and re-arm) and [`summary`] (the figures of a run).
 
+pub mod command_channel;
 mod core;
 mod lockstep;
 mod realtime;
 mod summary;
 
+pub use self::command_channel::{command_channel, CommandReceiver, CommandSender};
 pub use self::core::{check_feasible, CycleCore, DFL_ENTRY_SPEED, FAULT_RESET_CYCLES};
 pub use self::lockstep::{
     lockstep_cycle, run_lockstep, run_lockstep_live, run_lockstep_with, LockstepBus, LockstepPeer,
@@ -38,7 +41,7 @@ pub use self::realtime::{
     realtime_setup, run_realtime, run_realtime_io, RealtimeIo, RealtimeOptions, RealtimeReport,
     MAX_COMMANDS_PER_CYCLE,
 };
-pub use self::summary::{percentile, RunSummary};
+pub use self::summary::{percentile, RunSummary, TimeHistogram};
 
 use crate::avoidance::AvoidanceConfig;
 use crate::num::{Fixed3, Num};
