@@ -272,6 +272,77 @@ fn cia402_platform_file_round_trips_and_bad_fields_are_named() {
     let _ = std::fs::remove_dir_all(dir);
 }
 
+/// `rollbase config check` with `[cia402.eds]`: the boot plan is checked against the drives'
+/// and encoders' description files (driver/tests/eds/, written by interop/cia402_eds.py),
+/// relative to the platform file; a file whose drive lacks an object the plan writes is
+/// refused naming the node, the object and the file.
+#[test]
+fn config_check_checks_the_boot_plan_against_eds_files() {
+    let _serial = serial();
+    let dir = scratch("eds");
+    let fixtures = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("driver/tests/eds");
+    for f in ["drive.eds", "encoder.eds", "missing-6060.eds", "drive.dcf"] {
+        std::fs::copy(fixtures.join(f), dir.join(f)).unwrap();
+    }
+    let out = rollbase()
+        .args(["config", "default", "--profile", "cia402"])
+        .output()
+        .unwrap();
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(text.contains("[cia402.eds]\n\n"), "{text}");
+    let with = |drive: &str| {
+        text.replacen(
+            "[cia402.eds]\n\n",
+            &format!(
+                "[cia402.eds]\ndrive = \"{drive}\"\nsteer = \"drive.eds\"\nleg = \"encoder.eds\"\n\n[[cia402.eds.devices]]\nnode = 4\nfile = \"drive.dcf\"\n\n"
+            ),
+            1,
+        )
+    };
+    let good = dir.join("good.toml");
+    std::fs::write(&good, with("drive.eds")).unwrap();
+    let out = rollbase()
+        .args(["config", "check"])
+        .arg(&good)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(
+        stdout.matches("boot plan checked against").count(),
+        12,
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("node 4 (steering drive): boot plan checked against")
+            && stdout.contains("drive.dcf")
+            && stdout.contains("2 DCF values written at boot"),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("DCF value of 0x6041:00 not written (read-only)"),
+        "{stdout}"
+    );
+    let bad = dir.join("bad.toml");
+    std::fs::write(&bad, with("missing-6060.eds")).unwrap();
+    let out = rollbase()
+        .args(["config", "check"])
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("node 1") && err.contains("0x6060:00") && err.contains("missing-6060.eds"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(dir);
+}
+
 /// `rollbase bridge --listen 127.0.0.1:0` with its stderr piped; returns it, its port and a
 /// receiver of its further stderr lines (a thread reads them until EOF, or until `keep_stderr`
 /// is false: then the thread closes the pipe right after the port line).

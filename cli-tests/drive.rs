@@ -554,8 +554,12 @@ fn drive_script(forward_until: f64) -> Vec<String> {
 }
 
 fn sigterm_while_driving(profile: &'static str) {
+    signal_while_driving(profile, libc::SIGTERM, "SIGTERM");
+}
+
+fn signal_while_driving(profile: &'static str, sig: libc::c_int, name: &str) {
     let _serial = serial();
-    let dir = scratch(profile);
+    let dir = scratch(&format!("{profile}-{name}"));
     let record = dir.join("x.mcap");
     let (_bridge, mut sim, url) = start_platform(profile);
     let mut drive = start_drive(&url, profile, &record);
@@ -569,7 +573,7 @@ fn sigterm_while_driving(profile: &'static str) {
     drive.wait_for("state: tracking");
     // Past the forward, rotation and leg phases, into the second forward one.
     std::thread::sleep(Duration::from_millis(5500));
-    drive.signal(libc::SIGTERM);
+    drive.signal(sig);
     let (status, stdout) = drive.wait();
     drop(stdin);
     let stderr = drive.stderr();
@@ -578,7 +582,10 @@ fn sigterm_while_driving(profile: &'static str) {
         Some(0),
         "{profile}: {status}\n{stdout}\n{stderr}"
     );
-    assert!(stderr.contains("SIGTERM: controlled stop"), "{stderr}");
+    assert!(
+        stderr.contains(&format!("{name}: controlled stop")),
+        "{stderr}"
+    );
     let s = summary(&stdout);
     assert_eq!(s["supervisor_final_state"], "stopped", "{s}");
     assert!(s["fault_reason"].is_null(), "{s}");
@@ -630,6 +637,12 @@ fn cia402_sigterm_while_driving_is_a_controlled_stop_then_exit_0_with_the_record
     sigterm_while_driving("cia402");
 }
 
+/// A closed terminal or ssh session (SIGHUP) must not kill the driver (issue 27).
+#[test]
+fn native_sighup_while_driving_is_a_controlled_stop_then_exit_0_with_the_recording_finished() {
+    signal_while_driving("native", libc::SIGHUP, "SIGHUP");
+}
+
 #[test]
 fn end_of_stdin_lets_the_timeout_stop_the_platform_and_drive_exits_0_at_rest() {
     let _serial = serial();
@@ -678,6 +691,185 @@ fn end_of_stdin_lets_the_timeout_stop_the_platform_and_drive_exits_0_at_rest() {
         y.abs() < 0.01 && theta.abs() < 0.01,
         "y = {y} m, θ = {theta} rad"
     );
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+/// `rollbase drive` (CiA 402) on `url` with `extra` arguments and commands on stdin.
+fn start_drive_with(url: &str, extra: &[&str]) -> Proc {
+    Proc::spawn(
+        "rollbase drive",
+        rollbase()
+            .args([
+                "drive",
+                "--bus",
+                url,
+                "--profile",
+                "cia402",
+                "--commands",
+                "-",
+            ])
+            .args(extra)
+            .arg("--json")
+            .env("RUST_LOG", "info")
+            .stdin(Stdio::piped()),
+    )
+}
+
+/// A fault during boot is re-armable from the command stream, and the end of the stream ends
+/// `drive` whatever its state. Before, the stream was not read until the base first tracked:
+/// a device that did not boot left `drive` in Fault until a signal.
+#[test]
+fn a_boot_time_fault_is_cleared_by_a_rearm_line_and_the_run_goes_on() {
+    let _serial = serial();
+    let dir = scratch("bootfault");
+    // The simulated rolling drive of wheel 4 (node 7) is silent for the first 3 s: the boot
+    // fails after boot_timeout_ms (2 s), naming it.
+    let mut bridge = Proc::spawn(
+        "rollbase bridge",
+        fifo(&mut rollbase(), 60)
+            .args(["bridge", "--listen", "127.0.0.1:0"])
+            .env("RUST_LOG", "info")
+            .stdin(Stdio::null()),
+    );
+    let line = bridge.wait_for("listening on 127.0.0.1:");
+    let port: u16 = line
+        .split("listening on 127.0.0.1:")
+        .nth(1)
+        .and_then(|r| r.split(|c: char| !c.is_ascii_digit()).next())
+        .and_then(|p| p.parse().ok())
+        .unwrap_or_else(|| panic!("no port in `{line}`"));
+    let url = format!("socketcand://127.0.0.1:{port}/vcan0");
+    let mut sim = Proc::spawn(
+        "rollbase-sim",
+        fifo(&mut Command::new(sim_binary()), 81)
+            .args(["--bus", &url, "--profile", "cia402", "--silent", "7:0:3.0"])
+            .stdin(Stdio::null()),
+    );
+    sim.wait_for("Ctrl-C to stop.");
+    let mut drive = start_drive_with(&url, &[]);
+    let mut stdin = drive.take_stdin();
+    // `t` counts from the moment the driver is ready: here the boot fault.
+    let mut lines = vec![r#"{"t": 1.5, "rearm": true}"#.to_string()];
+    hold(&mut lines, 4.0, 5.0, 0.2, 0.0, 0.0);
+    for line in &lines {
+        writeln!(stdin, "{line}").expect("write a command line");
+    }
+    drop(stdin);
+    let (status, stdout) = drive.wait();
+    let stderr = drive.stderr();
+    assert!(
+        stderr.contains("rolling drive (node 7)") && stderr.contains("no boot-up"),
+        "{stderr}"
+    );
+    assert_eq!(status.code(), Some(0), "{status}\n{stdout}\n{stderr}");
+    let s = summary(&stdout);
+    assert_eq!(s["supervisor_final_state"], "stopped", "{s}");
+    let truth = stop_sim(&mut sim);
+    assert!(
+        (0.1..0.4).contains(&truth[0]),
+        "moved {truth:?} after the re-arm"
+    );
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+/// Without a re-arm, the end of the stream ends a run that faulted at boot (exit 1, the
+/// fault named), instead of waiting for a signal.
+#[test]
+fn the_end_of_the_stream_ends_a_run_that_faulted_at_boot() {
+    let _serial = serial();
+    let dir = scratch("bootfault-eof");
+    // The controller's platform file says 500 nm encoder steps; the machine's are 1000 nm.
+    let config = dir.join("platform.toml");
+    let out = rollbase()
+        .args(["config", "default", "--profile", "cia402"])
+        .output()
+        .expect("rollbase config default");
+    let text = String::from_utf8_lossy(&out.stdout)
+        .replace("position_step_nm = 1000", "position_step_nm = 500");
+    assert!(text.contains("position_step_nm = 500"), "{text}");
+    std::fs::write(&config, text).expect("write the platform file");
+    let (_bridge, mut sim, url) = start_platform("cia402");
+    let mut drive = start_drive_with(&url, &["--config", config.to_str().expect("utf-8")]);
+    let mut stdin = drive.take_stdin();
+    let mut lines = Vec::new();
+    hold(&mut lines, 0.0, 1.0, 0.2, 0.0, 0.0);
+    for line in &lines {
+        writeln!(stdin, "{line}").expect("write a command line");
+    }
+    drop(stdin);
+    let (status, stdout) = drive.wait();
+    let stderr = drive.stderr();
+    assert_eq!(status.code(), Some(1), "{status}\n{stdout}\n{stderr}");
+    assert!(stderr.contains("end of stdin"), "{stderr}");
+    let s = summary(&stdout);
+    assert_eq!(s["supervisor_final_state"], "fault", "{s}");
+    let reason = s["fault_reason"].as_str().unwrap_or_default();
+    assert!(
+        reason.contains("0x6005:01") && reason.contains("leg encoder"),
+        "{reason}"
+    );
+    // The commands came while in fault: ignored (re-arm first), none reached the wheels.
+    assert!(s["ignored_commands"].as_u64().unwrap_or(0) > 0, "{s}");
+    let truth = stop_sim(&mut sim);
+    assert!(truth[0].abs() < 1e-3, "moved {truth:?}");
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+/// `rollbase sdo` against the CiA 402 twin on the bridge: expedited and segmented reads
+/// and writes, an abort explained, and a refusal while a master runs on the bus.
+#[test]
+fn sdo_reads_and_writes_expedited_and_segmented_objects_of_the_twin() {
+    let _serial = serial();
+    let (_bridge, _sim, url) = start_platform("cia402");
+    let sdo = |args: &[&str]| {
+        let out = rollbase()
+            .args(["sdo", "--bus", &url])
+            .args(args)
+            .output()
+            .expect("rollbase sdo");
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stdout).trim().to_string(),
+            String::from_utf8_lossy(&out.stderr).to_string(),
+        )
+    };
+    // Expedited: the device type of a drive and of an encoder.
+    let (code, out, err) = sdo(&["--node", "2", "read", "0x1000:00"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.starts_with("131474 (0x00020192"), "{out}");
+    let (_, out, _) = sdo(&["--node", "9", "read", "1000:0", "--type", "hex"]);
+    assert_eq!(out, "96010800");
+    // Segmented upload: the device name.
+    let (code, out, err) = sdo(&["--node", "4", "read", "0x1008:00", "--type", "str"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert_eq!(out, "rollbase twin CiA 402 steering drive");
+    // Segmented download, read back.
+    let label = "wheel 2 steering, left front";
+    let (code, _, err) = sdo(&["--node", "4", "write", "0x2000:00", label, "--type", "str"]);
+    assert_eq!(code, Some(0), "{err}");
+    let (_, out, _) = sdo(&["--node", "4", "read", "0x2000:00", "--type", "str"]);
+    assert_eq!(out, label);
+    // Expedited download, read back.
+    let (code, _, err) = sdo(&["--node", "1", "write", "0x1017:00", "250", "--type", "u16"]);
+    assert_eq!(code, Some(0), "{err}");
+    let (_, out, _) = sdo(&["--node", "1", "read", "0x1017:00", "--type", "u16"]);
+    assert_eq!(out, "250");
+    // An abort, explained; a silent node, explained.
+    let (code, _, err) = sdo(&["--node", "1", "read", "0x1234:00"]);
+    assert_eq!(code, Some(1));
+    assert!(err.contains("0x06020000 (object does not exist)"), "{err}");
+    let (code, _, err) = sdo(&["--node", "42", "--timeout-ms", "100", "read", "0x1000:00"]);
+    assert_eq!(code, Some(1));
+    assert!(err.contains("no SDO response"), "{err}");
+    // Refused while a master runs on the bus.
+    let dir = scratch("sdo");
+    let mut drive = start_drive(&url, "cia402", &dir.join("x.mcap"));
+    drive.wait_for("state: aligning");
+    let (code, _, err) = sdo(&["--node", "1", "read", "0x1000:00"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("master is running on this bus"), "{err}");
+    drop(drive.take_stdin());
+    let _ = drive.wait();
     let _ = std::fs::remove_dir_all(dir);
 }
 

@@ -118,7 +118,7 @@ def test_device_types_and_identity(network):
         (lambda d: d.sdo.download(0x6041, 0, b"\x06\x00"), 0x0601_0002),  # statusword is read-only
         (lambda d: d.sdo.download(0x6060, 0, bytes([3])), 0x0609_0030),  # only CSV (9) is emulated
         (lambda d: d.sdo.download(0x1017, 0, b"\x64\x00\x00\x00"), 0x0607_0010),  # UNSIGNED16 written with 4 bytes
-        (lambda d: d.sdo.download(0x1017, 0, b"\x64\x00", force_segment=True), 0x0504_0001),  # segmented: not served
+        (lambda d: d.sdo.download(0x6041, 0, b"\x06\x00", force_segment=True), 0x0601_0002),  # segmented, read-only
         # Mapping a valid PDO: TPDO1 is valid after the reset, its mapping is locked.
         (lambda d: d.sdo.download(0x1A00, 0, bytes([0])), 0x0800_0022),
     ],
@@ -134,6 +134,11 @@ def test_sdo_writes_are_read_back(network):
     _, nodes, _ = network
     d = nodes[3]
     d.sdo.download(0x6060, 0, bytes([9]))
+    # The mode display follows the mode a few ms later, as CiA 402 lets it (the emulator is
+    # a real drive's twin): read it until it does, for at most 100 ms.
+    end = time.monotonic() + 0.1
+    while d.sdo.upload(0x6061, 0) != bytes([9]) and time.monotonic() < end:
+        time.sleep(0.002)
     assert d.sdo.upload(0x6061, 0) == bytes([9])
     d.sdo.download(0x1017, 0, struct.pack("<H", 250))
     assert d.sdo.upload(0x1017, 0) == struct.pack("<H", 250)

@@ -136,6 +136,14 @@ pub struct BridgeArgs {
     /// default: never; a quiet listener on a quiet channel stays connected).
     #[arg(long, value_name = "S", default_value_t = 0.0)]
     idle_timeout: f64,
+    /// SCHED_FIFO priority of the bridge's thread (1–99; 0: normal scheduling). Default 60,
+    /// below the controller's cycle thread (80) and the simulator (81): the bridge carries
+    /// their frames, and at normal priority a busy machine holds them back for many
+    /// milliseconds (a stale-feedback fault at 16 ms). The channel rate cap bounds what a
+    /// flood can take at this priority. Needs root, CAP_SYS_NICE or an rtprio limit; without
+    /// it the bridge says so and runs with normal scheduling.
+    #[arg(long, value_name = "PRIO", default_value_t = 60, value_parser = clap::value_parser!(i32).range(0..=99))]
+    priority: i32,
 }
 
 /// Why the bridge could not run.
@@ -1057,28 +1065,40 @@ fn config(a: &BridgeArgs) -> Result<BridgeConfig, BridgeError> {
     })
 }
 
-/// Resolves when Ctrl-C (SIGINT) or SIGTERM arrives.
-async fn stop_signal() {
-    let term = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
-                info!("SIGTERM: stopping");
-            }
+/// The signals that stop the bridge: SIGINT (Ctrl-C), SIGTERM, SIGHUP (the terminal went away)
+/// and SIGQUIT. Registered before the bridge says it is listening, so that none of them kills
+/// it (without its totals) between that line and the first poll of the shutdown future.
+/// Must be called within the runtime.
+fn stop_signals() -> Vec<(tokio::signal::unix::Signal, &'static str)> {
+    use tokio::signal::unix::SignalKind;
+    let mut v = Vec::with_capacity(4);
+    for (kind, name) in [
+        (SignalKind::interrupt(), "Ctrl-C (SIGINT)"),
+        (SignalKind::terminate(), "SIGTERM"),
+        (SignalKind::hangup(), "SIGHUP"),
+        (SignalKind::quit(), "SIGQUIT"),
+    ] {
+        match tokio::signal::unix::signal(kind) {
+            Ok(s) => v.push((s, name)),
             Err(e) => {
-                warn!("cannot listen for SIGTERM ({e}); only Ctrl-C stops the bridge cleanly");
-                std::future::pending::<()>().await
+                warn!("cannot listen for {name} ({e}); it ends the bridge without its totals")
             }
         }
-    };
-    tokio::select! {
-        r = tokio::signal::ctrl_c() => match r {
-            Ok(()) => info!("Ctrl-C: stopping"),
-            Err(e) => {
-                warn!("cannot listen for Ctrl-C ({e}); stopping");
-            }
-        },
-        _ = term => {}
+    }
+    v
+}
+
+/// Resolves when one of the registered stop signals arrives (never, if none could be).
+async fn stop_signal(mut sigs: Vec<(tokio::signal::unix::Signal, &'static str)>) {
+    if sigs.is_empty() {
+        return std::future::pending::<()>().await;
+    }
+    let waits = sigs
+        .iter_mut()
+        .map(|(s, name)| Box::pin(async move { s.recv().await.map(|()| *name) }));
+    match futures::future::select_all(waits).await.0 {
+        Some(name) => info!("{name}: stopping"),
+        None => warn!("a signal stream ended; stopping"),
     }
 }
 
@@ -1112,6 +1132,17 @@ pub fn run(a: BridgeArgs) -> Result<i32, BridgeError> {
             reason: r.into(),
         })?;
     }
+    if a.priority > 0 {
+        // On this (the runtime's only) thread, before the runtime starts.
+        let opts = rollbase_control::runtime::RealtimeOptions {
+            fifo_priority: Some(a.priority),
+            lock_memory: false,
+            max_cycles: None,
+        };
+        for line in rollbase_control::runtime::realtime_setup(&opts) {
+            info!("{}", line.replace("cycle thread", "bridge thread"));
+        }
+    }
     let rt = runtime().map_err(BridgeError::Runtime)?;
     rt.block_on(async {
         // The SocketCAN side first: a machine without kernel CAN fails here, before anyone
@@ -1125,6 +1156,7 @@ pub fn run(a: BridgeArgs) -> Result<i32, BridgeError> {
             })?),
             None => None,
         };
+        let signals = stop_signals();
         let listener = TcpListener::bind(a.listen)
             .await
             .map_err(|source| BridgeError::Listen {
@@ -1152,11 +1184,11 @@ pub fn run(a: BridgeArgs) -> Result<i32, BridgeError> {
             match duration {
                 Some(d) => {
                     tokio::select! {
-                        _ = stop_signal() => {}
+                        _ = stop_signal(signals) => {}
                         _ = tokio::time::sleep(d) => {}
                     }
                 }
-                None => stop_signal().await,
+                None => stop_signal(signals).await,
             }
         };
         let r = serve(listener, hub.clone(), can, shutdown).await;

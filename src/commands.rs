@@ -147,6 +147,66 @@ fn number(x: &serde_json::Value) -> Option<f64> {
     }
 }
 
+/// Start of the error [`UniqueKeys`] raises for a key given twice.
+const DUPLICATE: &str = "duplicate key ";
+
+/// A JSON value whose top-level object, if it is one, has no key twice (serde_json keeps
+/// the last of equal keys without a word; which one a producer meant cannot be known).
+struct UniqueKeys(serde_json::Value);
+
+impl<'de> serde::Deserialize<'de> for UniqueKeys {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> serde::de::Visitor<'de> for V {
+            type Value = serde_json::Value;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("a JSON object")
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(
+                self,
+                mut m: A,
+            ) -> Result<Self::Value, A::Error> {
+                let mut obj = serde_json::Map::new();
+                while let Some(k) = m.next_key::<String>()? {
+                    if obj.contains_key(&k) {
+                        return Err(serde::de::Error::custom(format_args!("{DUPLICATE}`{k}`")));
+                    }
+                    let v: serde_json::Value = m.next_value()?;
+                    obj.insert(k, v);
+                }
+                Ok(serde_json::Value::Object(obj))
+            }
+            // Anything else is read as it is; the caller says it is not an object.
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(
+                self,
+                mut a: A,
+            ) -> Result<Self::Value, A::Error> {
+                while a.next_element::<serde::de::IgnoredAny>()?.is_some() {}
+                Ok(serde_json::Value::Array(Vec::new()))
+            }
+            fn visit_bool<E>(self, v: bool) -> Result<Self::Value, E> {
+                Ok(serde_json::Value::Bool(v))
+            }
+            fn visit_i64<E>(self, v: i64) -> Result<Self::Value, E> {
+                Ok(v.into())
+            }
+            fn visit_u64<E>(self, v: u64) -> Result<Self::Value, E> {
+                Ok(v.into())
+            }
+            fn visit_f64<E>(self, v: f64) -> Result<Self::Value, E> {
+                Ok(serde_json::json!(v))
+            }
+            fn visit_str<E>(self, v: &str) -> Result<Self::Value, E> {
+                Ok(v.into())
+            }
+            fn visit_unit<E>(self) -> Result<Self::Value, E> {
+                Ok(serde_json::Value::Null)
+            }
+        }
+        d.deserialize_any(V).map(UniqueKeys)
+    }
+}
+
 /// Parses one line (`source` and `line` name it in errors). `Ok(None)` for a blank or
 /// comment line.
 pub fn parse_line(
@@ -154,6 +214,11 @@ pub fn parse_line(
     source: &str,
     line: usize,
 ) -> Result<Option<TimedCommand>, CommandFileError> {
+    // A UTF-8 byte order mark (Windows editors write one) starts the stream, not the JSON.
+    let text = match line {
+        1 => text.strip_prefix('\u{feff}').unwrap_or(text),
+        _ => text,
+    };
     let s = text.trim();
     if s.is_empty() || s.starts_with('#') {
         return Ok(None);
@@ -168,14 +233,25 @@ pub fn parse_line(
             ),
         ));
     }
-    let v: serde_json::Value = serde_json::from_str(&quote_non_finite(s)).map_err(|e| {
-        line_error(
-            source,
-            line,
-            format!("not a JSON object ({e}); expected e.g. {{\"t\": 1.0, \"vx\": 0.2, \"vy\": 0.0, \"omega\": 0.1}}"),
-        )
+    let v: UniqueKeys = serde_json::from_str(&quote_non_finite(s)).map_err(|e| {
+        let m = e.to_string();
+        match m.strip_prefix(DUPLICATE) {
+            Some(rest) => line_error(
+                source,
+                line,
+                format!(
+                    "field {} appears twice: give each field once",
+                    rest.split(" at line").next().unwrap_or(rest)
+                ),
+            ),
+            None => line_error(
+                source,
+                line,
+                format!("not a JSON object ({e}); expected e.g. {{\"t\": 1.0, \"vx\": 0.2, \"vy\": 0.0, \"omega\": 0.1}}"),
+            ),
+        }
     })?;
-    let obj = v.as_object().ok_or_else(|| {
+    let obj = v.0.as_object().ok_or_else(|| {
         line_error(
             source,
             line,
@@ -460,6 +536,47 @@ mod tests {
             .contains("unknown field `NaN`"));
         assert!(parse(r#"{"vx": "fast", "vy": 0, "omega": 0}"#).is_err());
         assert!(parse(r#"{"stop": null}"#).is_err());
+    }
+
+    #[test]
+    fn a_byte_order_mark_before_the_first_line_is_skipped() {
+        // Windows editors (Notepad, PowerShell's `Out-File -Encoding utf8`) start a UTF-8 file
+        // with U+FEFF; it is not part of the first line's JSON.
+        let c = parse_line("\u{feff}{\"t\": 1, \"stop\": true}", "f", 1)
+            .unwrap()
+            .unwrap();
+        assert_eq!((c.t, c.kind), (Some(1.0), CommandKind::Stop));
+        let dir = std::env::temp_dir().join(format!("rollbase-bom-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("c.jsonl");
+        std::fs::write(
+            &p,
+            "\u{feff}{\"t\": 0, \"vx\": 0.1, \"vy\": 0, \"omega\": 0}\n{\"t\": 1, \"stop\": true}\n",
+        )
+        .unwrap();
+        assert_eq!(load_file(&p).unwrap().len(), 2);
+        // Only before the first line: elsewhere it is a character that is not JSON.
+        assert!(parse_line("\u{feff}{\"t\": 1, \"stop\": true}", "f", 2).is_err());
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
+    #[test]
+    fn a_field_given_twice_is_refused_naming_it() {
+        // serde_json keeps the last of two equal keys; which one the producer meant is
+        // unknowable, so the line is refused.
+        let e = parse(r#"{"t": 1, "vx": 0.1, "vy": 0, "omega": 0, "vx": 2.0}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("test line 3") && e.contains("`vx` appears twice"),
+            "{e}"
+        );
+        let e = parse(r#"{"stop": true, "stop": false}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("`stop` appears twice"), "{e}");
+        // Equal keys in different objects are not duplicates (and keys are compared exactly).
+        assert!(parse(r#"{"t": 1, "vx": 0.1, "vy": 0, "omega": 0}"#).is_ok());
     }
 
     #[test]

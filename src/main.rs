@@ -53,7 +53,23 @@ pub fn init_logging() {
     }
 }
 
+/// glibc's malloc raises its mmap threshold to the size of each large block freed (up to
+/// 32 MiB) and its trim threshold to twice that: after one large transient buffer (a 32 MB
+/// ROS 2 message: rustdds reassembles it, the node decodes it), later buffers of that size
+/// come from the heap and stay with the process when freed — its memory grew for good
+/// (issue 27, finding 8). Fixed thresholds keep the default behaviour for small blocks and
+/// return every block of 128 KiB or more to the system when it is freed.
+fn fixed_malloc_thresholds() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets allocator parameters; called before any other thread exists.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 128 * 1024);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 * 1024);
+    }
+}
+
 fn main() {
+    fixed_malloc_thresholds();
     // A closed stdout or stderr must never kill a run (it would lose its recording): SIGPIPE
     // is ignored and every write checks its own result (`app::outln!` and friends; a filter
     // command like `rollbase dbc | head` ends quietly when its reader goes away).
@@ -64,6 +80,10 @@ fn main() {
         // too large"), a recording failure the run reports and stops on, instead of SIGXFSZ
         // killing the process with its recording unfinished.
         libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+        // SIGUSR1 and SIGUSR2 mean nothing to rollbase; their default action would end the
+        // process without a controlled stop (and lose the recording's index).
+        libc::signal(libc::SIGUSR1, libc::SIG_IGN);
+        libc::signal(libc::SIGUSR2, libc::SIG_IGN);
     }
     init_logging();
     let cli = app::Cli::parse();

@@ -700,6 +700,26 @@ impl Supervisor {
         self.fault(reason);
     }
 
+    /// Replaces the latched device fault's details with newer ones of the same device and
+    /// kind (CiA 402: the drive's error code, read back by SDO after the fault); the fault,
+    /// its time and its cause stay.
+    pub fn refine_device_fault(&mut self, wheel: usize, node: u8, fault: DeviceFault) {
+        if let Some(FaultReason::DeviceFault {
+            wheel: w,
+            node: n,
+            fault: f,
+            ..
+        }) = &mut self.reason
+        {
+            if *w == wheel
+                && *n == node
+                && std::mem::discriminant(f) == std::mem::discriminant(&fault)
+            {
+                *f = fault;
+            }
+        }
+    }
+
     /// Current state.
     pub fn state(&self) -> SupervisorState {
         self.state

@@ -395,6 +395,7 @@ pub struct CandumpReader<R: BufRead> {
     buf: Vec<u8>,
     done: bool,
     remote: u64,
+    last_kind: FrameKind,
 }
 
 impl<R: BufRead> CandumpReader<R> {
@@ -406,7 +407,14 @@ impl<R: BufRead> CandumpReader<R> {
             buf: Vec::with_capacity(64),
             done: false,
             remote: 0,
+            last_kind: FrameKind::Data,
         }
+    }
+
+    /// Whether the entry last yielded was a data or a remote frame (a remote frame's entry
+    /// holds its DLC and no data: show it as a request, not as zero bytes).
+    pub fn last_kind(&self) -> FrameKind {
+        self.last_kind
     }
 
     /// Remote frames read so far (they are yielded like data frames, see [`LogEntry`]).
@@ -465,6 +473,7 @@ impl<R: BufRead> Iterator for CandumpReader<R> {
                     if kind == FrameKind::Remote {
                         self.remote += 1;
                     }
+                    self.last_kind = kind;
                     Ok(entry)
                 }
                 Err(e) => Err(e.set_line(self.line)),

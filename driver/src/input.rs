@@ -29,6 +29,11 @@ use std::path::Path;
 /// Cap on a TOML configuration file (platform, plant, fault schedule): 1 MiB (module docs).
 pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
 
+/// Cap on a device description file (EDS/DCF, CiA 306): 8 MiB. A single-axis drive's EDS
+/// is 100–600 KiB (every object, sub-index and its attributes spelt out); multi-axis drives
+/// and encoders with many vendor objects reach 2–3 MiB.
+pub const MAX_EDS_BYTES: u64 = 8 << 20;
+
 /// Cap on a waypoint file: 8 MiB (module docs).
 pub const MAX_TRAJECTORY_BYTES: u64 = 8 << 20;
 
@@ -86,6 +91,27 @@ pub fn human_bytes(n: u64) -> String {
 /// Reads the whole text file at `path`, of at most `cap` bytes (see the module docs); `what`
 /// names the file in errors ("platform file", "waypoint file" …).
 pub fn read_text(path: &Path, cap: u64, what: &'static str) -> Result<String, InputError> {
+    let bytes = read_bytes(path, cap, what)?;
+    String::from_utf8(bytes).map_err(|e| InputError::NotUtf8 {
+        what,
+        path: path.display().to_string(),
+        offset: e.utf8_error().valid_up_to(),
+    })
+}
+
+/// [`read_text`] for files that are not always UTF-8: device description files (EDS/DCF)
+/// from vendors' tools are often ISO 8859-1 ("°", "µ" in names). UTF-8 text is taken as
+/// it is; anything else is read as ISO 8859-1 (every byte one character), which never fails.
+pub fn read_text_latin1(path: &Path, cap: u64, what: &'static str) -> Result<String, InputError> {
+    let bytes = read_bytes(path, cap, what)?;
+    Ok(match String::from_utf8(bytes) {
+        Ok(s) => s,
+        Err(e) => e.into_bytes().iter().map(|&b| char::from(b)).collect(),
+    })
+}
+
+/// The bytes of a file of at most `cap` bytes (see the module docs).
+pub fn read_bytes(path: &Path, cap: u64, what: &'static str) -> Result<Vec<u8>, InputError> {
     let io = |source| InputError::Io {
         what,
         path: path.display().to_string(),
@@ -109,11 +135,7 @@ pub fn read_text(path: &Path, cap: u64, what: &'static str) -> Result<String, In
     if bytes.len() as u64 > cap {
         return Err(too_large());
     }
-    String::from_utf8(bytes).map_err(|e| InputError::NotUtf8 {
-        what,
-        path: path.display().to_string(),
-        offset: e.utf8_error().valid_up_to(),
-    })
+    Ok(bytes)
 }
 
 /// What [`read_line`] found.

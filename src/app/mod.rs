@@ -40,6 +40,7 @@ macro_rules! err {
 mod monitor;
 mod ros2cmd;
 mod rt;
+mod sdo;
 mod service;
 mod sinks;
 mod teleop;
@@ -133,6 +134,9 @@ enum Command {
     Drive(DriveArgs),
     /// Decode frames live from a bus or from a candump log, one line per frame.
     Monitor(MonitorArgs),
+    /// Read or write one object of a CANopen device (expedited or segmented SDO), for
+    /// bring-up and diagnosis; refused while a master runs on the bus.
+    Sdo(sdo::SdoArgs),
     /// Plot a recording to PNG files.
     Plot(PlotArgs),
     /// Rewrite a recording left without index and summary (killed writer) into a new file.
@@ -254,6 +258,7 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
         Command::Run(a) => trajectory::run_bus(a),
         Command::Drive(a) => service::drive(a),
         Command::Monitor(a) => monitor::monitor(a),
+        Command::Sdo(a) => sdo::sdo(a),
         Command::Bridge(a) => Ok(crate::bridge::run(a)?),
         Command::Recover(a) => ros2cmd::recover(a),
         Command::Ros2Selftest(a) => ros2cmd::selftest(a),
@@ -332,13 +337,29 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
         }
         Command::Config { cmd } => match cmd {
             ConfigCmd::Check { file } => {
-                let p = Platform::load(&file)?;
+                let (p, eds) = Platform::load_checked(&file)?;
                 outln!(
                     "# {}: valid platform `{}` with {} wheels",
                     file.display(),
                     p.name,
                     p.n()
                 );
+                for (node, role, path, product, dcf) in &eds.devices {
+                    outln!(
+                        "# node {node} ({role}): boot plan checked against {path} ({product}){}",
+                        if *dcf > 0 {
+                            format!(", {dcf} DCF values written at boot")
+                        } else {
+                            String::new()
+                        }
+                    );
+                }
+                for (node, index, sub, why) in &eds.skipped {
+                    outln!(
+                        "# node {node}: DCF value of 0x{index:04X}:{sub:02X} not written ({})",
+                        why.reason()
+                    );
+                }
                 out!("{}", p.to_toml_string());
                 Ok(0)
             }
@@ -433,37 +454,49 @@ pub(crate) enum SignalAction {
     End,
 }
 
-/// SIGINT (Ctrl-C) and SIGTERM (what service managers send) both set `stop`, once; the run
-/// then stops in a controlled way and finishes its outputs. A second signal is reported and
-/// otherwise ignored (a stop in progress is not cut short). Returns a flag that tells
+/// Every signal a terminal or a service manager sends to end a process — SIGINT (Ctrl-C),
+/// SIGTERM (systemd, `kill`), SIGHUP (the terminal or the ssh session closed) and SIGQUIT
+/// (`Ctrl-\`) — sets `stop`, once; the run then stops in a controlled way and finishes its
+/// outputs. A second signal is reported and otherwise ignored (a stop in progress is not cut
+/// short). SIGUSR1 and SIGUSR2 are ignored from the start (`main`). Returns a flag that tells
 /// whether a signal came.
 pub(crate) fn install_signals(stop: Arc<AtomicBool>, action: SignalAction) -> Arc<AtomicBool> {
     let came = Arc::new(AtomicBool::new(false));
     let came2 = came.clone();
+    // The handlers are installed here, before this returns (a signal that comes right after
+    // must find them); a thread then waits for them.
+    let Ok(rt) = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    else {
+        tracing::error!(
+            "cannot start the signal handler; Ctrl-C, SIGTERM, SIGHUP and SIGQUIT end the process at once"
+        );
+        return came;
+    };
+    let signals = {
+        use tokio::signal::unix::{signal, SignalKind};
+        let _in_runtime = rt.enter();
+        (
+            signal(SignalKind::interrupt()),
+            signal(SignalKind::terminate()),
+            signal(SignalKind::hangup()),
+            signal(SignalKind::quit()),
+        )
+    };
+    let (Ok(mut int), Ok(mut term), Ok(mut hup), Ok(mut quit)) = signals else {
+        tracing::error!("cannot listen for SIGINT/SIGTERM/SIGHUP/SIGQUIT");
+        return came;
+    };
     std::thread::spawn(move || {
-        let Ok(rt) = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()
-        else {
-            tracing::error!(
-                "cannot start the signal handler; Ctrl-C and SIGTERM end the process at once"
-            );
-            return;
-        };
         rt.block_on(async {
-            use tokio::signal::unix::{signal, SignalKind};
-            let (Ok(mut int), Ok(mut term)) = (
-                signal(SignalKind::interrupt()),
-                signal(SignalKind::terminate()),
-            ) else {
-                tracing::error!("cannot listen for SIGINT/SIGTERM");
-                return;
-            };
             let mut first = true;
             loop {
                 let name = tokio::select! {
                     _ = int.recv() => "SIGINT",
                     _ = term.recv() => "SIGTERM",
+                    _ = hup.recv() => "SIGHUP",
+                    _ = quit.recv() => "SIGQUIT",
                 };
                 if first {
                     match action {

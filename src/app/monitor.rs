@@ -119,9 +119,9 @@ pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
     }
     match (&a.bus, &a.candump) {
         (Some(iface), None) => {
-            let mut canbus = bus::open(iface)?;
             let stop = Arc::new(AtomicBool::new(false));
             install_signals(stop.clone(), SignalAction::End);
+            let mut canbus = bus::open(iface)?;
             while !stop.load(Ordering::Relaxed) {
                 let deadline = std::time::Instant::now() + Duration::from_millis(200);
                 match canbus.recv_until(deadline) {
@@ -149,8 +149,31 @@ pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
             // counted and decoding goes on; a line longer than the cap (not a candump log:
             // `/dev/zero`, a binary file) or a read error ends the decode with an error.
             let mut reader = candump::CandumpReader::new(std::io::BufReader::new(f));
-            for item in reader.by_ref() {
+            while let Some(item) = reader.next() {
                 match item {
+                    // A remote frame (RTR) asks for data and carries none: shown as such
+                    // (rollbase's protocols use none, so it is counted as rejected).
+                    Ok(e) if reader.last_kind() == candump::FrameKind::Remote => {
+                        stats.frames += 1;
+                        stats.rejected += 1;
+                        let ts = e.timestamp;
+                        if a.json {
+                            let v = serde_json::json!({
+                                "t": ts.as_secs_f64(), "id": e.frame.id(), "dlc": e.frame.len(),
+                                "remote": true, "accepted": false,
+                                "error": "remote frame (RTR): no data; rollbase's protocols use none",
+                            });
+                            emit!("{v}");
+                        } else {
+                            emit!(
+                                "({}.{:06}) {:03X} [{}] remote request (RTR), no data  REJECTED: rollbase's protocols use no remote frames",
+                                ts.as_secs(),
+                                ts.subsec_micros(),
+                                e.frame.id(),
+                                e.frame.len(),
+                            );
+                        }
+                    }
                     Ok(e) if a.json => {
                         let v = dec.json(&mut stats, e.timestamp, &e.frame);
                         emit!("{v}");

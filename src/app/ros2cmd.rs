@@ -47,7 +47,7 @@ fn default_recovered(file: &std::path::Path) -> PathBuf {
 pub(crate) fn recover(a: RecoverArgs) -> Result<i32, CliError> {
     let out = a.out.clone().unwrap_or_else(|| default_recovered(&a.file));
     let rep = rollbase::record::recover(&a.file, &out)?;
-    if rep.had_footer && rep.stopped.is_none() {
+    if rep.had_footer && rep.stopped.is_none() && rep.skipped.is_empty() && rep.orphaned == 0 {
         errln!(
             "{}: the recording was complete; copied {} messages",
             a.file.display(),
@@ -64,6 +64,40 @@ pub(crate) fn recover(a: RecoverArgs) -> Result<i32, CliError> {
     }
     for (t, n) in &rep.messages {
         errln!("  {t:<24} {n}");
+    }
+    if !rep.skipped.is_empty() {
+        errln!(
+            "{}: skipped {} damaged region(s) of the input (nothing of them is in the output; every intact chunk after them is):",
+            a.file.display(),
+            rep.skipped.len() as u64 + rep.skipped_more
+        );
+        for s in &rep.skipped {
+            let times = match s.log_times {
+                Some((a, b)) if a <= b => format!(
+                    "; its header gives messages logged from {:.3} s to {:.3} s",
+                    a as f64 * 1e-9,
+                    b as f64 * 1e-9
+                ),
+                _ => String::new(),
+            };
+            errln!(
+                "  bytes {}..{} ({} bytes): {}{times}",
+                s.offset,
+                s.offset + s.length,
+                s.length,
+                s.reason
+            );
+        }
+        if rep.skipped_more > 0 {
+            errln!("  … and {} more", rep.skipped_more);
+        }
+    }
+    if rep.orphaned > 0 {
+        errln!(
+            "{}: {} messages of intact chunks were dropped: their channel was defined only in a damaged region",
+            a.file.display(),
+            rep.orphaned
+        );
     }
     outln!("{}", out.display());
     Ok(0)
@@ -189,7 +223,7 @@ pub(crate) fn selftest(a: SelftestArgs) -> Result<i32, CliError> {
         )?),
         None => None,
     };
-    let (cmd_tx, cmd_rx) = std::sync::mpsc::sync_channel::<CommandEvent>(64);
+    let (cmd_tx, cmd_rx) = rollbase_control::runtime::command_channel(64, 16);
     let (state_tx, state_rx) = std::sync::mpsc::sync_channel::<BaseState>(16);
     let origin = Instant::now();
     let node = spawn_node(opts.clone(), cmd_tx, state_rx, origin)?;
@@ -220,7 +254,9 @@ pub(crate) fn selftest(a: SelftestArgs) -> Result<i32, CliError> {
     let mut next = Instant::now();
     let mut warned = false;
     while !stop.load(Ordering::SeqCst) && origin.elapsed().as_secs_f64() < a.duration {
-        while let Ok(ev) = cmd_rx.try_recv() {
+        let mut taken = Vec::new();
+        cmd_rx.take(usize::MAX, |ev| taken.push(ev));
+        for ev in taken {
             outln!("{}", command_json(&ev));
             match ev.kind {
                 CommandKind::Stop => state = SupervisorState::Stopped,

@@ -4,15 +4,15 @@
 
 use rollbase_control::runtime::record::CycleRecord;
 use rollbase_control::runtime::{
-    run_realtime_io, CycleCore, RealtimeIo, RealtimeOptions, RealtimeReport,
+    run_realtime_io, CommandReceiver, CycleCore, RealtimeIo, RealtimeOptions, RealtimeReport,
 };
-use rollbase_control::service::ports::{BaseState, CommandEvent};
+use rollbase_control::service::ports::BaseState;
 use rollbase_driver::bus::CanBus;
 use rollbase_vcan_sim::Simulator;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{Receiver, SyncSender};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TryRecvError};
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use super::sinks::Sinks;
 use super::CliError;
@@ -20,13 +20,63 @@ use super::CliError;
 /// Records queued between the cycle thread and the recorder (about 8 s at 250 Hz).
 pub(crate) const RECORD_QUEUE: usize = 2048;
 
+/// How often a consumer of the cycle's channels looks for a value ([`poll_recv`]).
+const POLL: Duration = Duration::from_millis(1);
+
+/// The next value of a channel the cycle thread sends on, waiting at most `within`, without
+/// ever blocking in the channel itself: a receiver blocked in `recv` registers with the
+/// channel's waker, and the sender's `try_send` then takes that waker's mutex to wake it. The
+/// cycle thread (SCHED_FIFO) would share a lock with this normal-priority thread and wait
+/// whenever a busy machine preempts it while it holds the lock. Polling (every [`POLL`])
+/// leaves the waker empty, so the cycle's `try_send` never takes a lock.
+pub(crate) fn poll_recv<T>(rx: &Receiver<T>, within: Duration) -> Result<T, RecvTimeoutError> {
+    let until = Instant::now() + within;
+    loop {
+        match rx.try_recv() {
+            Ok(v) => return Ok(v),
+            Err(TryRecvError::Disconnected) => return Err(RecvTimeoutError::Disconnected),
+            Err(TryRecvError::Empty) => {
+                let now = Instant::now();
+                if now >= until {
+                    return Err(RecvTimeoutError::Timeout);
+                }
+                std::thread::sleep(POLL.min(until - now));
+            }
+        }
+    }
+}
+
 /// The channels a real-time run connects to the cycle (besides its records).
 #[derive(Default)]
 pub(crate) struct Ports<'a> {
     /// Commands in (the base service).
-    pub(crate) commands: Option<Receiver<CommandEvent>>,
+    pub(crate) commands: Option<CommandReceiver>,
     /// State out (the base service's consumers).
     pub(crate) states: Option<&'a SyncSender<BaseState>>,
+    /// Run the cycle thread on this CPU only (the in-process simulator's, [`SimThread`]).
+    pub(crate) cpu: Option<usize>,
+}
+
+/// Restricts the calling thread to `cpu`; a line for the operator either way.
+fn pin_to(cpu: usize, who: &str) -> String {
+    // SAFETY: a zeroed cpu_set_t is a valid empty set; CPU_SET writes within it for any
+    // cpu < CPU_SETSIZE (checked); sched_setaffinity reads it.
+    let r = unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        if cpu >= libc::CPU_SETSIZE as usize {
+            return format!("{who}: CPU {cpu} is beyond the CPU set; not pinned");
+        }
+        libc::CPU_SET(cpu, &mut set);
+        libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set)
+    };
+    if r == 0 {
+        format!("{who} runs on CPU {cpu} only (with the in-process simulator)")
+    } else {
+        format!(
+            "{who}: cannot keep it on CPU {cpu} ({}); it may run on any",
+            std::io::Error::last_os_error()
+        )
+    }
 }
 
 /// Runs `core` on `bus` in real time on its own thread until it is done; the calling thread
@@ -49,12 +99,14 @@ pub(crate) fn run_cycle(
         let cycle = std::thread::Builder::new()
             .name("rollbase-cycle".into())
             .spawn_scoped(s, move || {
+                let pinned = ports.cpu.map(|c| pin_to(c, "cycle thread"));
                 let io = RealtimeIo {
                     records: Some(&tx),
                     states: ports.states,
                     commands: ports.commands.as_ref(),
                 };
-                let r = run_realtime_io(core, bus, stop, &io, &opts, origin_ns);
+                let mut r = run_realtime_io(core, bus, stop, &io, &opts, origin_ns);
+                r.setup.extend(pinned);
                 drop(tx);
                 r
             });
@@ -68,7 +120,7 @@ pub(crate) fn run_cycle(
         };
         let mut reported = false;
         loop {
-            match rx.recv_timeout(Duration::from_millis(100)) {
+            match poll_recv(&rx, Duration::from_millis(100)) {
                 Ok(r) => {
                     sinks.take(&r, &r.wheel_xy[..r.n]);
                     if sinks.failed() && !reported {
@@ -80,8 +132,8 @@ pub(crate) fn run_cycle(
                     }
                     each(&r, sinks);
                 }
-                Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
-                Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
+                Err(RecvTimeoutError::Timeout) => {}
+                Err(RecvTimeoutError::Disconnected) => break,
             }
         }
         cycle
@@ -122,22 +174,38 @@ pub(crate) fn print_report(report: &RealtimeReport, quiet: bool) {
 
 /// The simulated wheel modules of a demo, in real time on their own thread (wall-clock
 /// in-process bus).
+///
+/// The thread runs at SCHED_FIFO 81 on one CPU, and the cycle thread is kept on the same CPU
+/// ([`Ports::cpu`]). Real modules never stall with the host; a simulator thread does: on a
+/// kernel without full preemption (PREEMPT_NONE, the default of many distribution and VM
+/// kernels) a task in a long system call keeps its CPU up to the next preemption point, and
+/// a runnable real-time thread waits — measured here: a linker held the simulator's CPU for
+/// 28.8 ms while the cycle thread ran on the other CPU, sending SYNCs nobody answered (a
+/// stale-feedback fault that no real module would have caused). On one CPU both wait
+/// together: the cycle sees a late cycle (a deadline miss), not silent modules.
 pub(crate) struct SimThread {
     stop: Arc<AtomicBool>,
     handle: Option<std::thread::JoinHandle<()>>,
+    cpu: Option<usize>,
 }
 
 impl SimThread {
-    /// Starts `sim` on `node`.
+    /// Starts `sim` on `node`, on the CPU the caller runs on.
     pub(crate) fn start(
         mut sim: Simulator,
         mut node: rollbase_driver::bus::virtual_bus::VirtualNode,
     ) -> Result<Self, CliError> {
         let stop = Arc::new(AtomicBool::new(false));
         let s2 = stop.clone();
+        // SAFETY: sched_getcpu has no preconditions.
+        let cpu = usize::try_from(unsafe { libc::sched_getcpu() }).ok();
         let handle = std::thread::Builder::new()
             .name("rollbase-sim".into())
             .spawn(move || {
+                if let Some(c) = cpu {
+                    let line = pin_to(c, "simulator thread");
+                    tracing::debug!("{line}");
+                }
                 // The simulated modules stand in for hardware, which never waits for the
                 // controller's process: give them real-time priority too (one above the cycle
                 // thread's), so a loaded machine delays neither side.
@@ -154,7 +222,13 @@ impl SimThread {
         Ok(Self {
             stop,
             handle: Some(handle),
+            cpu,
         })
+    }
+
+    /// The CPU the simulator runs on (for [`Ports::cpu`]).
+    pub(crate) fn cpu(&self) -> Option<usize> {
+        self.cpu
     }
 }
 

@@ -6,16 +6,19 @@
 //!                                            └──► state port (bounded) ──► status, ROS 2
 //! ```
 //!
-//! The cycle thread takes what commands are waiting without blocking and hands its state over
-//! with `try_send`; sources and consumers run on their own threads. SIGINT and SIGTERM are a
-//! controlled stop and a clean exit (recording finished); the end of a command file (or EOF
-//! on stdin) lets the command timeout stop the platform, and the run ends once it is at rest.
+//! The cycle thread takes what commands are waiting without blocking — stop and re-arm first,
+//! through their own lane ([`rollbase_control::runtime::command_channel`]) — and hands its
+//! state over with `try_send`; sources and consumers run on their own threads. SIGINT,
+//! SIGTERM, SIGHUP and SIGQUIT are a controlled stop and a clean exit (recording finished);
+//! the end of a command file (or EOF on stdin) lets the command timeout stop the platform,
+//! and the run ends once it is at rest.
 
 use clap::Args;
 use rollbase::commands::{self, TimedCommand};
 use rollbase::ros2::{spawn_node, Ros2Args, Ros2Options};
+use rollbase_control::runtime::command_channel::{command_channel, MOTION_QUEUE, PRIORITY_LANE};
 use rollbase_control::runtime::record::CycleRecord;
-use rollbase_control::runtime::{CycleCore, RuntimeConfig};
+use rollbase_control::runtime::{CommandSender, CycleCore, RuntimeConfig};
 use rollbase_control::service::ports::{BaseState, CommandEvent, CommandKind};
 use rollbase_control::supervisor::SupervisorState;
 use rollbase_control::Platform;
@@ -25,11 +28,11 @@ use std::collections::BTreeMap;
 use std::io::{BufRead, Read};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{Receiver, SyncSender};
+use std::sync::mpsc::TrySendError;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use super::rt::{print_report, run_cycle, wall_bus, Ports, SimThread};
+use super::rt::{poll_recv, print_report, run_cycle, wall_bus, Ports, SimThread};
 use super::sinks::{OutputPlan, Sinks};
 use super::trajectory::{finish, run_demo_lockstep, DemoArgs};
 use super::{
@@ -39,8 +42,6 @@ use super::{
 /// A consumer of the state port (on the state thread).
 pub(crate) type StateConsumer = Box<dyn FnMut(&BaseState) + Send>;
 
-/// Commands queued between the sources and the cycle (the cycle takes up to 64 a cycle).
-const COMMAND_QUEUE: usize = 256;
 /// State-port values queued toward the consumers (at 250 Hz: a quarter of a second).
 const STATE_QUEUE: usize = 64;
 /// States queued toward the ROS 2 node (it publishes at ≤ 50 Hz and keeps only the latest).
@@ -145,13 +146,10 @@ impl Ready {
 }
 
 /// Sends `kind` at `at` (sleeping until then, or giving up on `stop`); false once the cycle is
-/// gone.
-fn send_at(
-    tx: &SyncSender<CommandEvent>,
-    stop: &AtomicBool,
-    at: Instant,
-    kind: CommandKind,
-) -> bool {
+/// gone. A motion command that finds the queue full is dropped and counted by the channel
+/// (the status log reports drops, at most once a second); stop and re-arm take the priority
+/// lane and are never dropped.
+fn send_at(tx: &CommandSender, stop: &AtomicBool, at: Instant, kind: CommandKind) -> bool {
     loop {
         if stop.load(Ordering::SeqCst) {
             return false;
@@ -163,13 +161,192 @@ fn send_at(
         std::thread::sleep((at - now).min(Duration::from_millis(20)));
     }
     // The cycle stamps the event with the time it takes it.
-    match tx.try_send(CommandEvent { t: 0.0, kind }) {
-        Ok(()) => true,
-        Err(std::sync::mpsc::TrySendError::Full(_)) => {
-            tracing::warn!("command queue full ({COMMAND_QUEUE}): a command was dropped");
-            true
+    !matches!(
+        tx.try_send(CommandEvent { t: 0.0, kind }),
+        Err(TrySendError::Disconnected(_))
+    )
+}
+
+/// Reads the rest of an overlong line and forgets it: at most one buffer of the reader is held
+/// at a time, however long the line (`/dev/zero`, a line of a gigabyte). Returns the bytes
+/// skipped; stops at the newline (consumed), at the end of the input or on `stop`.
+fn skip_rest_of_line(r: &mut impl BufRead, stop: &AtomicBool) -> std::io::Result<u64> {
+    let mut skipped = 0u64;
+    loop {
+        if stop.load(Ordering::Relaxed) {
+            return Ok(skipped);
         }
-        Err(std::sync::mpsc::TrySendError::Disconnected(_)) => false,
+        let buf = match r.fill_buf() {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        };
+        if buf.is_empty() {
+            return Ok(skipped);
+        }
+        match buf.iter().position(|&b| b == b'\n') {
+            Some(i) => {
+                r.consume(i + 1);
+                return Ok(skipped + i as u64 + 1);
+            }
+            None => {
+                let n = buf.len();
+                r.consume(n);
+                skipped += n as u64;
+            }
+        }
+    }
+}
+
+/// Timed stdin lines (with `t`) that may wait for their time at once; more are dropped
+/// (counted, with a warning).
+const STDIN_SCHEDULE: usize = 1024;
+
+/// The stdin rule for `t`: a line without `t` acts when it is read; a line with `t` acts at
+/// that time (seconds after the driver was ready; at once when that has passed), and never
+/// holds back the lines read after it: they are read as they come, so a stop (without `t`)
+/// always acts at once. The timed lines wait here, in time order, for the scheduler thread.
+struct StdinSchedule {
+    state: Mutex<Pending>,
+    wake: std::sync::Condvar,
+}
+
+#[derive(Default)]
+struct Pending {
+    lines: Vec<(Instant, u64, CommandKind)>,
+    next_seq: u64,
+    eof: bool,
+}
+
+impl StdinSchedule {
+    fn new() -> Self {
+        Self {
+            state: Mutex::new(Pending {
+                lines: Vec::with_capacity(STDIN_SCHEDULE),
+                ..Default::default()
+            }),
+            wake: std::sync::Condvar::new(),
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Pending> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Queues a timed line; false when the schedule is full.
+    fn push(&self, due: Instant, kind: CommandKind) -> bool {
+        let mut g = self.lock();
+        if g.lines.len() >= STDIN_SCHEDULE {
+            return false;
+        }
+        let seq = g.next_seq;
+        g.next_seq += 1;
+        g.lines.push((due, seq, kind));
+        drop(g);
+        self.wake.notify_one();
+        true
+    }
+
+    /// Whether nothing waits (a due line may then be sent directly, in reading order).
+    fn is_empty(&self) -> bool {
+        self.lock().lines.is_empty()
+    }
+
+    fn end(&self) {
+        self.lock().eof = true;
+        self.wake.notify_one();
+    }
+
+    /// Sends each waiting line at its time, earliest first (equal times in reading order);
+    /// after the end of stdin, once nothing waits, the end of the stream.
+    fn run(&self, tx: &CommandSender, stop: &AtomicBool, end: impl Fn(&CommandSender, &str)) {
+        let mut g = self.lock();
+        loop {
+            if stop.load(Ordering::SeqCst) {
+                return;
+            }
+            let next = g
+                .lines
+                .iter()
+                .enumerate()
+                .min_by_key(|(_, (due, seq, _))| (*due, *seq))
+                .map(|(i, (due, _, _))| (i, *due));
+            let now = Instant::now();
+            let wait = match next {
+                None if g.eof => {
+                    drop(g);
+                    end(tx, "stdin");
+                    return;
+                }
+                None => Duration::from_millis(100),
+                Some((i, due)) if due <= now => {
+                    let (_, _, kind) = g.lines.swap_remove(i);
+                    drop(g);
+                    if !send_at(tx, stop, now, kind) {
+                        return;
+                    }
+                    g = self.lock();
+                    continue;
+                }
+                Some((_, due)) => (due - now).min(Duration::from_millis(100)),
+            };
+            g = match self.wake.wait_timeout(g, wait) {
+                Ok((g, _)) => g,
+                Err(e) => e.into_inner().0,
+            };
+        }
+    }
+}
+
+/// Warnings about timed stdin lines: the first that waits more than a second is named, later
+/// ones (and lines dropped because the schedule is full) are counted at most every 10 s.
+struct TimedLog {
+    waiting: u64,
+    dropped: u64,
+    last: Option<Instant>,
+}
+
+impl TimedLog {
+    fn new() -> Self {
+        Self {
+            waiting: 0,
+            dropped: 0,
+            last: None,
+        }
+    }
+
+    fn quiet(&self) -> bool {
+        self.last
+            .is_some_and(|at| at.elapsed() < Duration::from_secs(10))
+    }
+
+    fn ahead(&mut self, line: usize, t: f64, ahead: Duration) {
+        self.waiting += 1;
+        if self.last.is_none() {
+            tracing::warn!(
+                "stdin line {line}: `t` = {t} is {:.1} s ahead: the line waits until then; lines read meanwhile act as they come (without `t`: at once, a stop too)",
+                ahead.as_secs_f64()
+            );
+        } else if !self.quiet() {
+            tracing::warn!(
+                "stdin: {} lines with `t` ahead waited for their time so far",
+                self.waiting
+            );
+        } else {
+            return;
+        }
+        self.last = Some(Instant::now());
+    }
+
+    fn full(&mut self, line: usize) {
+        self.dropped += 1;
+        if !self.quiet() {
+            tracing::warn!(
+                "stdin line {line}: {STDIN_SCHEDULE} lines already wait for their `t`: dropped ({} in all)",
+                self.dropped
+            );
+            self.last = Some(Instant::now());
+        }
     }
 }
 
@@ -178,18 +355,18 @@ fn send_at(
 /// source such as ROS 2 goes on) it only lets the command timeout stop the platform.
 pub(crate) fn start_source(
     source: Source,
-    tx: SyncSender<CommandEvent>,
+    tx: CommandSender,
     ready: Arc<Ready>,
     stop: Arc<AtomicBool>,
     platform: &Platform,
     ends_run: bool,
 ) -> Result<(), CliError> {
-    let end = move |tx: &SyncSender<CommandEvent>, what: &str| {
+    let end = move |tx: &CommandSender, what: &str| {
         if ends_run {
             tracing::info!(
                 "end of {what}: the command timeout stops the platform, then the run ends"
             );
-            let _ = tx.send(CommandEvent {
+            let _ = tx.try_send(CommandEvent {
                 t: 0.0,
                 kind: CommandKind::EndOfStream,
             });
@@ -226,10 +403,22 @@ pub(crate) fn start_source(
             "rollbase-stdin",
             Box::new(move || {
                 let Some(t0) = ready.wait(&stop) else { return };
+                let schedule = Arc::new(StdinSchedule::new());
+                {
+                    let (schedule, tx, stop) = (schedule.clone(), tx.clone(), stop.clone());
+                    let started = std::thread::Builder::new()
+                        .name("rollbase-stdin-t".into())
+                        .spawn(move || schedule.run(&tx, &stop, end));
+                    if let Err(e) = started {
+                        tracing::error!("stdin: cannot start the thread of timed lines: {e}");
+                        return;
+                    }
+                }
                 let stdin = std::io::stdin();
                 let mut lock = stdin.lock();
                 let mut buf = Vec::new();
                 let mut line = 0usize;
+                let mut log = TimedLog::new();
                 loop {
                     buf.clear();
                     let r = (&mut lock)
@@ -245,13 +434,19 @@ pub(crate) fn start_source(
                     }
                     line += 1;
                     if buf.len() > commands::MAX_LINE_BYTES + 1 && !buf.ends_with(b"\n") {
+                        // Skip the rest of the overlong line, holding none of it.
+                        let rest = skip_rest_of_line(&mut lock, &stop);
                         tracing::warn!(
-                            "stdin line {line}: longer than {} bytes; skipped",
-                            commands::MAX_LINE_BYTES
+                            "stdin line {line}: longer than {} bytes ({}); skipped",
+                            commands::MAX_LINE_BYTES,
+                            match &rest {
+                                Ok(k) => format!("{} bytes", buf.len() as u64 + k),
+                                Err(e) => format!("reading it failed: {e}"),
+                            }
                         );
-                        // Skip the rest of the overlong line.
-                        let mut rest = Vec::new();
-                        let _ = lock.read_until(b'\n', &mut rest);
+                        if rest.is_err() {
+                            break;
+                        }
                         continue;
                     }
                     let Ok(text) = std::str::from_utf8(&buf) else {
@@ -260,19 +455,32 @@ pub(crate) fn start_source(
                     };
                     match commands::parse_line(text, "stdin", line) {
                         Ok(Some(c)) => {
-                            let at = match c.t {
-                                Some(t) => t0 + Duration::from_secs_f64(t),
-                                None => Instant::now(),
-                            };
-                            if !send_at(&tx, &stop, at, c.kind) {
-                                return;
+                            let now = Instant::now();
+                            let due = c.t.map(|t| t0 + Duration::from_secs_f64(t));
+                            match (c.t, due) {
+                                (Some(t), Some(due)) if due > now || !schedule.is_empty() => {
+                                    if due > now + Duration::from_secs(1) {
+                                        log.ahead(line, t, due - now);
+                                    }
+                                    if !schedule.push(due, c.kind) {
+                                        log.full(line);
+                                        tx.note_dropped();
+                                    }
+                                }
+                                _ => {
+                                    if !send_at(&tx, &stop, now, c.kind) {
+                                        schedule.end();
+                                        return;
+                                    }
+                                }
                             }
                         }
                         Ok(None) => {}
                         Err(e) => tracing::warn!("{e}; skipped"),
                     }
                 }
-                end(&tx, "stdin");
+                // The schedule sends the end of the stream once every timed line went out.
+                schedule.end();
             }),
         ),
         Source::Keyboard => super::teleop::start(tx, ready, stop, &p),
@@ -287,6 +495,9 @@ pub(crate) struct StatusLog {
     rejected: u64,
     limiting: rollbase_control::service::ports::Limiting,
     last_limit_log: Option<Instant>,
+    /// Dropped commands reported so far, and when.
+    dropped: u64,
+    last_drop_log: Option<Instant>,
 }
 
 impl StatusLog {
@@ -297,6 +508,8 @@ impl StatusLog {
             rejected: 0,
             limiting: Default::default(),
             last_limit_log: None,
+            dropped: 0,
+            last_drop_log: None,
         }
     }
 
@@ -314,6 +527,21 @@ impl StatusLog {
         if c.timeouts > self.timeouts {
             tracing::warn!("no valid command for the command timeout: stopping (steering held); the next command resumes");
             self.timeouts = c.timeouts;
+        }
+        // A source that floods the queue drops commands every cycle: one line a second at
+        // most, with the count since the last line and in all.
+        if c.dropped > self.dropped
+            && self
+                .last_drop_log
+                .is_none_or(|t| t.elapsed() >= Duration::from_secs(1))
+        {
+            tracing::warn!(
+                "command queue full ({MOTION_QUEUE} motion commands waiting): {} commands dropped since the last report, {} in all (stop and re-arm are never dropped)",
+                c.dropped - self.dropped,
+                c.dropped
+            );
+            self.dropped = c.dropped;
+            self.last_drop_log = Some(Instant::now());
         }
         if c.rejected > self.rejected {
             match c.last_rejection {
@@ -358,9 +586,9 @@ fn serve(
     common: &CommonRun,
     on_state: Option<StateConsumer>,
     ros2: Option<Ros2Options>,
+    cpu: Option<usize>,
 ) -> Result<(), CliError> {
-    let (cmd_tx, cmd_rx): (SyncSender<CommandEvent>, Receiver<CommandEvent>) =
-        std::sync::mpsc::sync_channel(COMMAND_QUEUE);
+    let (cmd_tx, cmd_rx) = command_channel(MOTION_QUEUE, PRIORITY_LANE);
     let (state_tx, state_rx) = std::sync::mpsc::sync_channel::<BaseState>(STATE_QUEUE);
     let ready = Arc::new(Ready::default());
     let platform = s.core.platform().clone();
@@ -412,8 +640,17 @@ fn serve(
         std::thread::Builder::new()
             .name("rollbase-state".into())
             .spawn(move || {
-                while let Ok(st) = state_rx.recv() {
-                    if st.state == SupervisorState::Tracking {
+                // Polled, never blocked on: see `rt::poll_recv` (the cycle sends on it).
+                loop {
+                    let st = match poll_recv(&state_rx, Duration::from_secs(1)) {
+                        Ok(st) => st,
+                        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => continue,
+                        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
+                    };
+                    // Ready: tracking, or faulted before it could (a device that did not boot
+                    // or home): the sources run from then on, so a `rearm` clears a boot-time
+                    // fault and the end of the stream ends the run whatever its state.
+                    if matches!(st.state, SupervisorState::Tracking | SupervisorState::Fault) {
                         ready.set();
                     }
                     if let Some(tx) = &node_tx {
@@ -430,7 +667,7 @@ fn serve(
     };
     let mut status = StatusLog::new();
     tracing::info!(
-        "driving on {} ({} wheels, {} profile, {} Hz): following commands once armed; SIGINT or SIGTERM stops",
+        "driving on {} ({} wheels, {} profile, {} Hz): following commands once armed; SIGINT, SIGTERM, SIGHUP or SIGQUIT stops",
         canbus.name(),
         platform.n(),
         platform.protocol,
@@ -444,6 +681,7 @@ fn serve(
         Ports {
             commands: Some(cmd_rx),
             states: Some(&state_tx),
+            cpu,
         },
         s.origin,
         &mut |r, _| status.take(r),
@@ -502,7 +740,7 @@ pub(crate) fn drive(a: DriveArgs) -> Result<i32, CliError> {
         signalled,
         origin,
     };
-    serve(&mut s, canbus.as_mut(), source, &a.common, None, ros2)?;
+    serve(&mut s, canbus.as_mut(), source, &a.common, None, ros2, None)?;
     finish(
         s.sinks,
         &s.core,
@@ -614,13 +852,22 @@ pub(crate) fn demo_live(a: DemoArgs) -> Result<i32, CliError> {
         )),
         (false, source) => {
             let (mut ctrl, sim_node) = wall_bus();
-            let _sim = SimThread::start(sim, sim_node)?;
+            let sim = SimThread::start(sim, sim_node)?;
             let on_state: Option<StateConsumer> = if a.teleop {
                 Some(super::teleop::status_line())
             } else {
                 None
             };
-            serve(&mut s, &mut ctrl, source, &a.common, on_state, ros2)?;
+            serve(
+                &mut s,
+                &mut ctrl,
+                source,
+                &a.common,
+                on_state,
+                ros2,
+                sim.cpu(),
+            )?;
+            drop(sim);
         }
     }
     finish(

@@ -731,6 +731,9 @@ pub(crate) fn print_summary(
     outln!("  {:<28} {:>12}", "rejected_frames", s.rejected_frames);
     outln!("  {:<28} {:>12}", "command_timeouts", s.command_timeouts);
     outln!("  {:<28} {:>12}", "rejected_commands", s.rejected_commands);
+    if s.dropped_commands > 0 {
+        outln!("  {:<28} {:>12}", "dropped_commands", s.dropped_commands);
+    }
     outln!("  {:<28} {:>12}", "supervisor_final_state", s.final_state);
     if let Some(p) = s.final_pose {
         outln!(

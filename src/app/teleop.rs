@@ -24,6 +24,7 @@
 //! log line clears the status line first ([`log_writer`]), the status line is drawn again
 //! below it, and the last status line is ended with a newline before the run's report.
 
+use rollbase_control::runtime::CommandSender;
 use rollbase_control::service::ports::{
     BaseState, CommandEvent, CommandKind, LegTargets, MotionCommand,
 };
@@ -31,7 +32,6 @@ use rollbase_control::types::Twist;
 use rollbase_control::Platform;
 use std::io::{IsTerminal, Read, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::SyncSender;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -214,7 +214,7 @@ struct Keys {
 
 /// Starts the keyboard reader and the 20 Hz command sender.
 pub(crate) fn start(
-    tx: SyncSender<CommandEvent>,
+    tx: CommandSender,
     ready: Arc<Ready>,
     stop: Arc<AtomicBool>,
     p: &Platform,

@@ -246,7 +246,7 @@ pub(crate) fn run_demo_lockstep(
     if let Some(e) = sinks.error() {
         tracing::error!("{e}: {}", super::rt::error_chain(e));
     }
-    sinks.summary.compute_us = rep.compute_us.clone();
+    sinks.summary.compute = rep.compute.clone();
     if !quiet {
         errln!(
             "lockstep: {} cycles ({:.1} s of platform time) in {:.2} s wall, {:.0}× real time",
@@ -276,7 +276,10 @@ pub(crate) fn run_demo_realtime(
         &mut ctrl_node,
         sinks,
         stop,
-        Ports::default(),
+        Ports {
+            cpu: _sim.cpu(),
+            ..Ports::default()
+        },
         origin,
         &mut |r, sinks| {
             if show && last_print.elapsed() > Duration::from_millis(200) {

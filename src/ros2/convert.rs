@@ -295,6 +295,9 @@ impl DiagnosticsBuilder {
                     kv("watchdog_trips", m.watchdog_trips.to_string()),
                     kv("age_cycles", m.age_cycles.to_string()),
                     kv("state", state.to_string()),
+                    kv("emcy_informational", m.emcy_informational.to_string()),
+                    kv("emcy_faults", m.emcy_faults.to_string()),
+                    kv("emcy_last", emcy_text(&m.emcy)),
                 ],
             });
         }
@@ -543,6 +546,29 @@ pub fn motion_command(t: &Twist) -> CommandKind {
 /// count is checked by the command port (a wrong count is rejected and counted there).
 pub fn legs_command(data: &[f64]) -> CommandKind {
     CommandKind::Legs(LegTargets::from_slice(data))
+}
+
+/// The EMCY history of a wheel's devices for a diagnostic value: newest first, `code (node N,
+/// register R, at T s)`; `-` when none came.
+fn emcy_text(e: &[rollbase_control::service::ports::EmcyEntry]) -> String {
+    let parts: Vec<String> = e
+        .iter()
+        .filter(|x| x.node != 0)
+        .map(|x| {
+            format!(
+                "0x{:04X} (node {}, register 0x{:02X}, at {:.3} s)",
+                x.code,
+                x.node,
+                x.register,
+                x.at_ms as f64 * 1e-3
+            )
+        })
+        .collect();
+    if parts.is_empty() {
+        "-".into()
+    } else {
+        parts.join("; ")
+    }
 }
 
 #[cfg(test)]

@@ -34,6 +34,7 @@ use super::params;
 use super::service::{self, RequestMeta};
 use super::{Ros2Error, Ros2Options, ServiceMapping};
 use futures::{FutureExt, StreamExt};
+use rollbase_control::runtime::CommandSender;
 use rollbase_control::service::ports::{BaseState, CommandEvent, CommandKind};
 use rustdds::{
     DomainParticipantStatusEvent, QosPolicies, RTPSEntity, SampleIdentity, SequenceNumber,
@@ -41,7 +42,7 @@ use rustdds::{
 };
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -258,14 +259,15 @@ impl Endpoints {
 /// Starts the node: joins the DDS domain (`opts.domain_id`, else `ROS_DOMAIN_ID`, else 0),
 /// creates every topic and service, and starts the node's threads.
 ///
-/// - `cmd_tx`: the command port's queue; the node `try_send`s into it and never blocks.
+/// - `cmd_tx`: the command port's channel; the node `try_send`s into it and never blocks
+///   (`~/stop` and `~/rearm` take its priority lane: never dropped behind velocity commands).
 /// - `state_rx`: one [`BaseState`] per cycle; the node publishes decimated to its rates.
 /// - `origin`: the instant the driver was ready; command times are seconds since then.
 ///
 /// Everything that can fail is created before this returns: an error means nothing runs.
 pub fn spawn_node(
     opts: Ros2Options,
-    cmd_tx: SyncSender<CommandEvent>,
+    cmd_tx: CommandSender,
     state_rx: Receiver<BaseState>,
     origin: Instant,
 ) -> Result<NodeHandle, Ros2Error> {
@@ -496,7 +498,7 @@ fn qos_detail(offered: &QosPolicies, requested: &QosPolicies) -> String {
 }
 
 struct CommandSide {
-    cmd_tx: SyncSender<CommandEvent>,
+    cmd_tx: CommandSender,
     origin: Instant,
     stats: Arc<NodeStats>,
     shared: SharedState,
@@ -1027,7 +1029,7 @@ mod tests {
             ..Default::default()
         };
         // A command queue of 1 that is not drained until the end: the second command is dropped.
-        let (cmd_tx, cmd_rx) = std::sync::mpsc::sync_channel::<CommandEvent>(1);
+        let (cmd_tx, cmd_rx) = rollbase_control::runtime::command_channel(1, 1);
         let (state_tx, state_rx) = std::sync::mpsc::sync_channel::<BaseState>(8);
         let origin = Instant::now();
         let node = spawn_node(opts, cmd_tx, state_rx, origin).expect("node starts");
@@ -1075,7 +1077,9 @@ mod tests {
         assert_eq!(o.header.frame_id, "odom");
         assert_eq!(o.child_frame_id, "base_link");
         assert_eq!(o.pose.pose.position.x, 1.5);
-        let first = cmd_rx.try_recv().expect("a command reached the queue");
+        let mut taken = Vec::new();
+        cmd_rx.take(1, |e| taken.push(e));
+        let first = *taken.first().expect("a command reached the queue");
         match first.kind {
             // 0.25 + the index of the first command that found the subscription matched.
             CommandKind::Motion(m) => assert_eq!(m.twist.vx.fract(), 0.25, "{m:?}"),

@@ -673,6 +673,8 @@ pub fn run_nav2(
         final_drive_states: Vec::new(),
         after_end: Vec::new(),
         final_state: Some(*core.base_state()),
+        final_skipped: crate::skipped_of(&core),
+        final_truth_steer: sim.truth().steer,
         timing: None,
     };
     (out, session)

@@ -55,8 +55,13 @@ pub struct RunOptions {
     /// Serialize the simulator's frames on a bus of this bit rate (`None`: every frame
     /// arrives at its send time, as the native tests always ran).
     pub sim_bitrate: Option<u32>,
-    /// The controller's platform (`None`: Justin's); its `protocol` is set to `profile`.
+    /// The controller's platform (`None` = [`Platform::justin`] with `profile`): e.g. a
+    /// `[cia402]` table with a homing method.
     pub platform: Option<Platform>,
+    /// How the simulated CiA 402 devices behave (the real drives' twin by default).
+    pub twin: rollbase_vcan_sim::canopen::TwinConfig,
+    /// Steering angles of the simulated platform at power-on (`None`: the simulator's).
+    pub initial_steer: Option<[f64; rollbase_control::MAX_WHEELS]>,
 }
 
 impl RunOptions {
@@ -79,6 +84,8 @@ impl RunOptions {
             profile: Protocol::Native,
             sim_bitrate: None,
             platform: None,
+            twin: Default::default(),
+            initial_steer: None,
         }
     }
 
@@ -115,6 +122,11 @@ pub struct RunOutcome {
     pub after_end: Vec<rollbase_driver::frame::CanFrame>,
     /// The state port's value after the last cycle (live runs).
     pub final_state: Option<rollbase_control::service::ports::BaseState>,
+    /// CiA 402: the optional plan steps each device did not have, as (node, index, sub),
+    /// as the master reported them at the end.
+    pub final_skipped: Vec<(u8, u16, u8)>,
+    /// The simulator's true steering angles after the last cycle (rad).
+    pub final_truth_steer: [f64; rollbase_control::MAX_WHEELS],
     /// The timing of a time-scaled trajectory as the core planned it (`None` for live
     /// commands or an unscaled trajectory).
     pub timing: Option<rollbase_control::reference::status::Timing>,
@@ -148,9 +160,13 @@ pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstep
         CycleCore::new(platform.clone(), traj, opts.runtime.clone()).map_err(|e| e.to_string())?;
     let mut sim_p = opts.sim_platform.clone().unwrap_or(platform);
     sim_p.protocol = opts.profile;
-    let initial = opts
+    let mut initial = opts
         .start_at_reference
         .then(|| rollbase_vcan_sim::InitialState::from_reference(&sim_p, &r0));
+    if let Some(steer) = opts.initial_steer {
+        let s = initial.get_or_insert_with(|| rollbase_vcan_sim::InitialState::nominal(&sim_p));
+        s.steer = steer;
+    }
     let sim = Simulator::with_config(
         &sim_p,
         SimConfig {
@@ -159,6 +175,7 @@ pub fn build(opts: &RunOptions) -> Result<(CycleCore, Simulator, VirtualLockstep
             initial,
             seed: opts.seed,
             bitrate: opts.sim_bitrate,
+            twin: opts.twin.clone(),
             ..SimConfig::default()
         },
     )
@@ -188,6 +205,7 @@ pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]
             sink(r, w);
         },
     );
+    let truth_steer = sim.truth().steer;
     let end = sim.now();
     sim.advance_to(end + AFTER_END);
     let mut after_end = Vec::new();
@@ -210,8 +228,23 @@ pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]
         final_drive_states,
         after_end,
         final_state: None,
+        final_skipped: skipped_of(&core),
+        final_truth_steer: truth_steer,
         timing,
     }
+}
+
+/// The optional plan steps the CiA 402 master skipped, per device (node, index, sub).
+pub fn skipped_of(core: &CycleCore) -> Vec<(u8, u16, u8)> {
+    let buses = core.link();
+    (0..buses.count())
+        .filter_map(|b| buses.link(b).and_then(|l| l.master()))
+        .flat_map(|m| {
+            m.devices()
+                .iter()
+                .flat_map(|d| d.skipped().iter().map(move |(i, s)| (d.node, *i, *s)))
+        })
+        .collect()
 }
 
 /// Runs the options in lockstep.
@@ -322,8 +355,12 @@ pub struct LiveOptions {
     pub initial: Option<rollbase_vcan_sim::InitialState>,
     /// Give up after this many seconds of platform time.
     pub max_seconds: f64,
-    /// The platform (`None`: Justin's); its `protocol` is set to `profile`.
+    /// The platform (`None`: [`Platform::justin`] with `profile`).
     pub platform: Option<Platform>,
+    /// Faults of the simulated devices.
+    pub faults: FaultSchedule,
+    /// How the simulated CiA 402 devices behave.
+    pub twin: rollbase_vcan_sim::canopen::TwinConfig,
 }
 
 impl Default for LiveOptions {
@@ -336,6 +373,8 @@ impl Default for LiveOptions {
             initial: None,
             max_seconds: 120.0,
             platform: None,
+            faults: FaultSchedule::default(),
+            twin: Default::default(),
         }
     }
 }
@@ -353,6 +392,8 @@ pub fn build_live(opts: &LiveOptions) -> (CycleCore, Simulator, VirtualLockstepB
             initial: opts.initial,
             seed: opts.seed,
             bitrate: (opts.profile == Protocol::Cia402).then_some(1_000_000),
+            faults: opts.faults.clone(),
+            twin: opts.twin.clone(),
             ..SimConfig::default()
         },
     )
@@ -392,6 +433,8 @@ pub fn run_live(
         final_drive_states: Vec::new(),
         after_end: Vec::new(),
         final_state: Some(*core.base_state()),
+        final_skipped: skipped_of(&core),
+        final_truth_steer: sim.truth().steer,
         timing: None,
     }
 }
@@ -614,6 +657,8 @@ pub fn run_buses(opts: &RunOptions, lose: Option<(usize, f64)>) -> RunOutcome {
         final_drive_states: Vec::new(),
         after_end: Vec::new(),
         final_state: Some(*core.base_state()),
+        final_skipped: skipped_of(&core),
+        final_truth_steer: sim.truth().steer,
         timing: None,
     }
 }

@@ -34,6 +34,16 @@
 //! at = 5.0
 //! until = 5.2
 //!
+//! [[power_cycle]]     # CiA 402: the device loses power at `at` and boots again (an
+//! node = 4            # incremental steering counter restarts at 0 wherever the wheel is)
+//! at = 7.0
+//!
+//! [[emcy]]            # CiA 402: the device sends an EMCY (register 0: informational);
+//! node = 1            # a non-zero register with a drive faults it, 0x603F = code
+//! at = 8.0
+//! code = 0xFF01
+//! register = 0
+//!
 //! [[drive_gain]]      # the module's rolling drive realises `gain` × its setpoint from `at`
 //! node = 2            # (0.5: a motor that responds at 50 %, 0: one that does not respond)
 //! at = 6.0
@@ -70,6 +80,32 @@ pub struct MotorFault {
     pub node: u8,
     /// Time (s).
     pub at: f64,
+}
+
+/// A CiA 402 device loses power at `at` and boots again (its boot time later).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PowerCycle {
+    /// Node-ID of the CANopen device.
+    pub node: u8,
+    /// Time (s).
+    pub at: f64,
+}
+
+/// A CiA 402 device sends an EMCY at `at`: with error register 0 an informational one (the
+/// device goes on), otherwise a drive faults with `code` in 0x603F and 0x1003.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EmcyEvent {
+    /// Node-ID of the CANopen device.
+    pub node: u8,
+    /// Time (s).
+    pub at: f64,
+    /// Error code.
+    pub code: u16,
+    /// Error register.
+    #[serde(default)]
+    pub register: u8,
 }
 
 /// All encoders of a module freeze at their reading at `at` (for the rest of the run).
@@ -148,6 +184,10 @@ pub struct FaultSchedule {
     pub bus_off: Vec<BusOff>,
     /// Rolling drives that weaken or die.
     pub drive_gain: Vec<DriveGain>,
+    /// CiA 402 devices that lose power and boot again.
+    pub power_cycle: Vec<PowerCycle>,
+    /// CiA 402 devices that send an EMCY.
+    pub emcy: Vec<EmcyEvent>,
 }
 
 fn check_prob(field: &str, p: f64) -> Result<(), SimError> {
@@ -217,6 +257,8 @@ impl FaultSchedule {
             && self.encoder_jump.is_empty()
             && self.bus_off.is_empty()
             && self.drive_gain.is_empty()
+            && self.power_cycle.is_empty()
+            && self.emcy.is_empty()
     }
 
     /// Checks every field; the error names the first bad one (e.g. `silent[1].to`).
@@ -273,6 +315,14 @@ impl FaultSchedule {
                 ));
             }
         }
+        for (i, m) in self.power_cycle.iter().enumerate() {
+            check_node(&format!("power_cycle[{i}].node"), m.node)?;
+            check_time(&format!("power_cycle[{i}].at"), m.at)?;
+        }
+        for (i, m) in self.emcy.iter().enumerate() {
+            check_node(&format!("emcy[{i}].node"), m.node)?;
+            check_time(&format!("emcy[{i}].at"), m.at)?;
+        }
         for (i, b) in self.bus_off.iter().enumerate() {
             check_time(&format!("bus_off[{i}].at"), b.at)?;
             check_time(&format!("bus_off[{i}].until"), b.until)?;
@@ -314,6 +364,12 @@ impl FaultSchedule {
         }
         for (i, g) in self.drive_gain.iter().enumerate() {
             check(format!("drive_gain[{i}].node"), g.node)?;
+        }
+        for (i, g) in self.power_cycle.iter().enumerate() {
+            check(format!("power_cycle[{i}].node"), g.node)?;
+        }
+        for (i, g) in self.emcy.iter().enumerate() {
+            check(format!("emcy[{i}].node"), g.node)?;
         }
         Ok(())
     }

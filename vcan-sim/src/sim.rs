@@ -70,6 +70,9 @@ pub struct SimConfig {
     /// length in bits ([`rollbase_driver::busload::frame_bits`]); the controller's own frames
     /// are not modelled.
     pub bitrate: Option<u32>,
+    /// How the CiA 402 profile's devices behave where real drives differ from an ideal
+    /// device (incremental steering counters, home switches, informational EMCYs …).
+    pub twin: crate::canopen::TwinConfig,
 }
 
 impl Default for SimConfig {
@@ -83,6 +86,7 @@ impl Default for SimConfig {
             response_latency: Duration::from_micros(300),
             seed: 1,
             bitrate: None,
+            twin: crate::canopen::TwinConfig::default(),
         }
     }
 }
@@ -127,6 +131,8 @@ enum Modules {
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum EventKind {
     MotorFault,
+    PowerCycle,
+    Emcy(u16, u8),
     EncoderStuck,
     EncoderJump(f64),
     DriveGain(f64),
@@ -257,7 +263,7 @@ impl Simulator {
             Protocol::Cia402 => Modules::CanOpen(
                 cia402
                     .devices()
-                    .map(|(w, r, _)| Device::new(&cia402, w, r, cfg.firmware.boot_time))
+                    .map(|(w, r, _)| Device::new(&cia402, w, r, cfg.firmware.boot_time, &cfg.twin))
                     .collect(),
             ),
         };
@@ -275,6 +281,18 @@ impl Simulator {
             wheel: wheel_of(m.node),
             node: m.node,
             kind: EventKind::MotorFault,
+        }));
+        events.extend(f.power_cycle.iter().map(|m| Event {
+            at: m.at,
+            wheel: wheel_of(m.node),
+            node: m.node,
+            kind: EventKind::PowerCycle,
+        }));
+        events.extend(f.emcy.iter().map(|m| Event {
+            at: m.at,
+            wheel: wheel_of(m.node),
+            node: m.node,
+            kind: EventKind::Emcy(m.code, m.register),
         }));
         events.extend(f.encoder_stuck.iter().map(|m| Event {
             at: m.at,
@@ -565,6 +583,23 @@ impl Simulator {
                         self.flush_outbox(t);
                     }
                 },
+                EventKind::PowerCycle | EventKind::Emcy(..) => {
+                    if let Modules::CanOpen(devs) = &mut self.modules {
+                        if let Some(d) = devs.iter_mut().find(|d| d.node() == ev.node) {
+                            match ev.kind {
+                                EventKind::PowerCycle => d.power_cycle(t),
+                                EventKind::Emcy(code, register) => {
+                                    let outbox = &mut self.outbox;
+                                    d.send_emcy(t, code, register, &mut |fr| {
+                                        outbox.push((ev.node, fr))
+                                    });
+                                }
+                                _ => {}
+                            }
+                        }
+                        self.flush_outbox(t);
+                    }
+                }
                 EventKind::EncoderStuck => self.plant.set_encoder_stuck(ev.wheel, true),
                 EventKind::EncoderJump(a) => self.plant.add_steer_encoder_offset(ev.wheel, a),
                 EventKind::DriveGain(g) => self.plant.set_drive_gain(ev.wheel, g),

@@ -1,5 +1,6 @@
-//! `rollbase-sim` as a service manager or a test harness runs it: SIGTERM and SIGINT are a
-//! clean stop (summary, exit 0), and a closed stdout/stderr never kills it.
+//! `rollbase-sim` as a service manager or a test harness runs it: SIGTERM, SIGINT, SIGHUP (a
+//! closed terminal) and SIGQUIT are a clean stop (summary, exit 0), SIGUSR1/2 are ignored, a
+//! closed stdout/stderr never kills it, and what it refuses before it starts exits 2.
 
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, ExitStatus, Stdio};
@@ -28,7 +29,12 @@ fn wait_bounded(child: &mut Child, limit: Duration) -> ExitStatus {
 
 #[test]
 fn sigterm_and_sigint_stop_it_cleanly_with_its_summary() {
-    for (sig, name) in [(libc::SIGTERM, "SIGTERM"), (libc::SIGINT, "SIGINT")] {
+    for (sig, name) in [
+        (libc::SIGTERM, "SIGTERM"),
+        (libc::SIGINT, "SIGINT"),
+        (libc::SIGHUP, "SIGHUP"),
+        (libc::SIGQUIT, "SIGQUIT"),
+    ] {
         let mut child = sim()
             .args(["--bus", "virtual"])
             .stdout(Stdio::null())
@@ -57,6 +63,16 @@ fn sigterm_and_sigint_stop_it_cleanly_with_its_summary() {
                 }
             }
         }
+        // SIGUSR1 and SIGUSR2 are ignored (their default would kill it, unsummarised).
+        for usr in [libc::SIGUSR1, libc::SIGUSR2] {
+            // SAFETY: sending a signal to our own child process.
+            assert_eq!(unsafe { libc::kill(child.id() as libc::pid_t, usr) }, 0);
+        }
+        std::thread::sleep(Duration::from_millis(200));
+        assert!(
+            child.try_wait().expect("try_wait").is_none(),
+            "{name}: SIGUSR1/SIGUSR2 ended it"
+        );
         // SAFETY: sending a signal to our own child process.
         assert_eq!(unsafe { libc::kill(child.id() as libc::pid_t, sig) }, 0);
         let status = wait_bounded(&mut child, Duration::from_secs(20));
@@ -93,4 +109,31 @@ fn a_closed_stdout_and_stderr_never_kill_it() {
         Some(0),
         "exit {status:?}: writing to a closed pipe must not end it"
     );
+}
+
+#[test]
+fn what_it_refuses_before_starting_exits_2_naming_the_input() {
+    let dir = std::env::temp_dir().join(format!("rollbase-sim-exit-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let bad = dir.join("bad.toml");
+    std::fs::write(&bad, "[[waypoints]]\nx = \"far\"\n").unwrap();
+    let missing = dir.join("missing.toml");
+    for (args, needle) in [
+        (
+            vec!["--bus", "virtual", "--start", bad.to_str().unwrap()],
+            "bad.toml",
+        ),
+        (
+            vec!["--bus", "virtual", "--start", missing.to_str().unwrap()],
+            "missing.toml",
+        ),
+        (vec!["--bus", "virtual", "--duration=-1"], "--duration"),
+        (vec!["--bus", "nosuchcan7"], "nosuchcan7"),
+    ] {
+        let out = sim().args(&args).output().expect("run rollbase-sim");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains(needle), "{args:?}: {err}");
+    }
+    let _ = std::fs::remove_dir_all(dir);
 }

@@ -47,6 +47,10 @@ pub enum ConfigError {
     /// The file could not be read, is too large (`/dev/zero` …) or is not UTF-8 text.
     #[error(transparent)]
     Input(#[from] rollbase_driver::input::InputError),
+    /// A device description file (`[cia402] eds`) could not be read, or the boot plan does
+    /// not fit it.
+    #[error(transparent)]
+    Eds(#[from] Box<rollbase_driver::canopen::eds::EdsError>),
     /// The TOML is malformed or has unknown/missing fields.
     #[error("platform file is not valid TOML for a platform description: {0}")]
     Parse(String),
@@ -603,15 +607,31 @@ impl Platform {
         Ok(p)
     }
 
-    /// Reads, parses and validates a platform file.
+    /// Reads, parses and validates a platform file; with `[cia402] eds` files, reads them
+    /// (paths relative to the platform file's directory), takes the DCFs' values into the
+    /// boot plan and checks the plan against them ([`rollbase_driver::canopen::eds`]).
     pub fn load(path: impl AsRef<Path>) -> Result<Self, ConfigError> {
+        Ok(Self::load_checked(path)?.0)
+    }
+
+    /// [`Platform::load`], with what the EDS/DCF check did (for `rollbase config check`).
+    pub fn load_checked(
+        path: impl AsRef<Path>,
+    ) -> Result<(Self, rollbase_driver::canopen::eds::EdsReport), ConfigError> {
         let path = path.as_ref();
         let text = rollbase_driver::input::read_text(
             path,
             rollbase_driver::input::MAX_CONFIG_BYTES,
             "platform file",
         )?;
-        Self::from_toml_str(&text)
+        let mut p = Self::from_toml_str(&text)?;
+        let mut report = rollbase_driver::canopen::eds::EdsReport::default();
+        let period_us = (p.dt() * 1e6).round() as u32;
+        if let Some(c) = p.cia402.as_mut().filter(|c| !c.eds.is_empty()) {
+            let base = path.parent().unwrap_or(Path::new("."));
+            report = rollbase_driver::canopen::eds::apply(c, base, period_us).map_err(Box::new)?;
+        }
+        Ok((p, report))
     }
 
     /// The platform as TOML text (round-trips through [`Platform::from_toml_str`]).
@@ -963,6 +983,19 @@ impl Platform {
             ));
         }
         let l = &self.limits;
+        c.homing
+            .validate("cia402.homing", l.steer_rate, l.steer_accel)
+            .map_err(|e| invalid(e.field, e.value, e.reason))?;
+        for (i, w) in c.wheels.iter().enumerate() {
+            if let Some(h) = w.homing {
+                h.validate(
+                    &format!("cia402.wheels[{i}].homing"),
+                    l.steer_rate,
+                    l.steer_accel,
+                )
+                .map_err(|e| invalid(e.field, e.value, e.reason))?;
+            }
+        }
         for (field, units, limit, name) in [
             ("cia402.drive", c.drive, l.wheel_speed, "limits.wheel_speed"),
             ("cia402.steer", c.steer, l.steer_rate, "limits.steer_rate"),

@@ -60,7 +60,7 @@
 //!
 //! # Tracking a stream
 //!
-//! When the twist is within 2 cm/s (`TRACK_ERROR`, at the fastest wheel) of a goal that
+//! When the twist is within 5 cm/s (`TRACK_ERROR`, at the fastest wheel) of a goal that
 //! moves, it follows the goal continuously rather than planning a transition per message:
 //! the twist's acceleration is the goal's own rate plus the remaining difference over
 //! `TRACK_TIME` (50 ms), with the gain faded to zero as the difference shrinks into the
@@ -221,7 +221,7 @@ const STREAM_PERIOD: f64 = 0.1;
 /// Largest difference (m/s at the fastest wheel) between the twist and its goal that the
 /// twist tracks continuously (module docs, "Tracking a stream"); larger ones are
 /// transitions.
-const TRACK_ERROR: f64 = 0.02;
+const TRACK_ERROR: f64 = 0.05;
 /// Time constant (s) of that tracking.
 const TRACK_TIME: f64 = 0.05;
 /// Messages over which the command's noise is estimated (a running median).

@@ -530,6 +530,30 @@ pub const MAX_WAYPOINT_TIME_S: f64 = 36_000.0;
 /// divide by up to the fifth power of the segment time) stay finite.
 pub const MIN_SEGMENT_S: f64 = 0.01;
 
+/// Slack of the [`MIN_SEGMENT_S`] check (s): waypoints written 10 ms apart in decimal
+/// (`t = 0.02`, `t = 0.03`) differ by 0.009999999999999998 s in binary floating point. 1 ns is
+/// far above that rounding (10⁻¹¹ s at the 10 h limit) and far below a control cycle.
+pub const MIN_SEGMENT_SLACK_S: f64 = 1e-9;
+
+/// Largest magnitudes a waypoint's coordinates (m) and heading (rad) may have on platform `p`,
+/// so that a coordinate can hold what the controller measures. The odometry adds one cycle's
+/// motion to the pose every cycle; the smallest motion the encoders report in a cycle is one
+/// wheel-speed step (the native protocol's 0.001 rad/s) times the wheel radius times the
+/// period (3.4·10⁻⁷ m on the default platform), and for the heading that distance over the
+/// longest lever (λ_max). Where an f64 of the coordinate's magnitude is coarser than 1/64 of
+/// that, the pose cannot follow the motion (at x = 10¹⁵ m a step of f64 is 0.125 m): the bound
+/// is the largest power of two below which the spacing of f64 is at most that fine —
+/// 2²⁵ m ≈ 3.4·10⁷ m (more than UTM's northings) and 2²⁶ rad on the default platform.
+pub fn coordinate_limits(p: &Platform) -> (f64, f64) {
+    let step = crate::estimation::odometry::EncoderResolution::default().wheel_speed
+        * p.wheel_radius
+        * p.dt();
+    let lever = p.wheels.iter().map(|w| w.lambda_max).fold(0.0, f64::max);
+    // f64 spacing in [2^e, 2^(e+1)) is 2^(e-52): at most `fine` for every e < log2(fine) + 52.
+    let limit = |fine: f64| 2f64.powi(fine.log2().floor() as i32 + 53);
+    (limit(step / 64.0), limit(step / lever / 64.0))
+}
+
 /// Nominal duration (s) of a segment from `a` to `b` without a given time: the longest of
 /// its translation at the wheels' top rolling speed r·ω_max, its rotation at that speed on the
 /// longest lever (the largest λ_max), and its largest leg move at the leg speed limit; at least
@@ -582,6 +606,21 @@ impl QuinticSpline {
                     _ => format!("waypoints[{k}].legs[{}]", c - 3),
                 };
                 finite(&name, w.z[c])?;
+                let limit = match c {
+                    0 | 1 => Some(coordinate_limits(p).0),
+                    2 => Some(coordinate_limits(p).1),
+                    _ => None,
+                };
+                if let Some(limit) = limit.filter(|l| w.z[c].abs() > *l) {
+                    return Err(TrajectoryError::BadParameter {
+                        field: name,
+                        value: w.z[c],
+                        reason: format!(
+                            "beyond ±{limit} {}: at that magnitude f64 cannot hold the motion the encoders measure in a cycle (see `trajectory::coordinate_limits`); give the waypoints in a frame whose origin is nearer",
+                            if c == 2 { "rad" } else { "m" }
+                        ),
+                    });
+                }
             }
             if let Some(t) = w.t {
                 if k == 0 && t < 0.0 {
@@ -610,7 +649,7 @@ impl QuinticSpline {
                         previous: prev,
                     });
                 }
-                if t - prev < MIN_SEGMENT_S {
+                if t - prev < MIN_SEGMENT_S - MIN_SEGMENT_SLACK_S {
                     return Err(TrajectoryError::BadParameter {
                         field: format!("waypoints[{k}].t"),
                         value: t,

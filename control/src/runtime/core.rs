@@ -767,6 +767,22 @@ impl CycleCore {
         self.cur_bus = 0;
     }
 
+    /// After [`CycleCore::start_cycle`] and the frames that arrived since the last cycle's
+    /// window ([`CycleCore::on_frame`], stamped before the SYNC): appends to `out` the frames
+    /// those made due (CiA 402: the next SDO request of a device being configured whose
+    /// answer just came; nothing natively). Returns how many were appended. Runtimes call it
+    /// before they send `out`, so the SYNC still goes first.
+    pub fn after_late_frames(&mut self, t: f64, out: &mut FrameBuf) -> usize {
+        let before = out.len();
+        self.link.service(t, std::slice::from_mut(out));
+        let added = out.len() - before;
+        for k in before..out.len() {
+            let f = out.as_slice()[k];
+            self.push_tx(t, &f);
+        }
+        added
+    }
+
     fn push_tx(&mut self, t: f64, f: &CanFrame) {
         if f.id() == 0x080 {
             self.sync_time = t;
@@ -1048,6 +1064,17 @@ impl CycleCore {
         let at_rest = command_at_rest(&self.last_cmd, self.sup.config().rest_speed);
         let state_before = self.sup.state();
         let mode = self.sup.step(&self.platform, sup_in, at_rest);
+        // Feedback lost or the bus failing: the host cannot ramp the drives down on what they
+        // do; drives that can (CiA 402) stop on their own quick-stop ramp.
+        if self.sup.state() == SupervisorState::Fault
+            && state_before != SupervisorState::Fault
+            && matches!(
+                self.sup.reason(),
+                Some(FaultReason::StaleFeedback { .. } | FaultReason::BusError)
+            )
+        {
+            self.link.quick_stop();
+        }
         if self.sup.state() == SupervisorState::Tracking
             && state_before != SupervisorState::Tracking
         {
@@ -1367,7 +1394,8 @@ impl CycleCore {
             match self.link.wheel_fault(i) {
                 Some(WheelFault::Module { code, .. }) => sup_in.module_fault[i] = Some(code),
                 Some(WheelFault::Device { node, role, fault }) => {
-                    sup_in.device_fault[i] = Some((node, role, fault))
+                    sup_in.device_fault[i] = Some((node, role, fault));
+                    self.sup.refine_device_fault(i, node, fault);
                 }
                 None => {}
             }
@@ -1752,6 +1780,9 @@ impl CycleCore {
             if watchdog && !d.in_watchdog {
                 d.counters.watchdog_trips += 1;
             }
+            if let Some((m, k)) = self.link.master_of_wheel(i) {
+                emcy_diagnostics(m, k, &mut d.counters);
+            }
             d.in_watchdog = watchdog;
             d.counters.age_cycles = alive[i];
             d.counters.state = self.record.module_state[i];
@@ -1865,6 +1896,40 @@ fn lag_compensation(
         }
     }
     cmd
+}
+
+/// CiA 402: the EMCY counters and the newest [`crate::service::ports::EMCY_KEPT`] EMCYs of wheel
+/// `wheel`'s devices (no allocation).
+fn emcy_diagnostics(
+    m: &rollbase_driver::canopen::master::Master,
+    wheel: usize,
+    out: &mut crate::service::ports::ModuleDiagnostics,
+) {
+    use crate::service::ports::{EmcyEntry, EMCY_KEPT};
+    out.emcy_informational = 0;
+    out.emcy_faults = 0;
+    out.emcy = [EmcyEntry::default(); EMCY_KEPT];
+    for d in m.devices().iter().filter(|d| d.wheel == wheel) {
+        out.emcy_informational = out.emcy_informational.saturating_add(d.emcy_informational);
+        out.emcy_faults = out.emcy_faults.saturating_add(d.emcy_faults);
+        for (t, e) in d.emcy_history() {
+            let entry = EmcyEntry {
+                node: d.node,
+                code: e.code,
+                register: e.register,
+                at_ms: (t.max(0.0) * 1e3) as u64,
+            };
+            // Insert by time, newest first; the oldest falls off the end.
+            if let Some(k) = out
+                .emcy
+                .iter()
+                .position(|x| x.node == 0 || x.at_ms < entry.at_ms)
+            {
+                out.emcy.copy_within(k..EMCY_KEPT - 1, k + 1);
+                out.emcy[k] = entry;
+            }
+        }
+    }
 }
 
 /// The odometry's encoder resolution for the platform's wire profile: the native protocol's

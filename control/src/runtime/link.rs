@@ -25,10 +25,13 @@
 //! A platform whose motors are all positive and uncoupled passes every value untouched.
 
 use crate::angle;
-use crate::model::platform::{Platform, Protocol};
-use crate::types::MAX_WHEELS;
+use crate::model::platform::{Limits, Platform, Protocol};
+use crate::reference::limits::guard_command;
+use crate::types::{Command, MAX_WHEELS};
 use rollbase_driver::canopen::config::Role;
-use rollbase_driver::canopen::master::{BootState, DeviceFault, Event, Master, Reject};
+use rollbase_driver::canopen::master::{
+    BootError, BootState, DeviceFault, Event, HomingError, HomingPhase, Master, Reject,
+};
 use rollbase_driver::codec::{
     encode, Message, ModuleState, Payload, Setpoint, SetpointFlags, Sync,
 };
@@ -199,13 +202,132 @@ pub struct NativeLink {
 }
 
 /// The CiA 402 profile's link: the driver's sans-IO master, plus the receive statistics
-/// in the native receiver's terms (see [`Link::rx_stats`]).
+/// in the native receiver's terms (see [`Link::rx_stats`]), and the turn of every steering
+/// axis to its rest angle after homing.
 pub struct Cia402Link {
     master: Master,
     stats: RxStats,
     n: usize,
+    rest: RestAlignment,
     wiring: Wiring,
     motors: [Setpoint; MAX_WHEELS],
+}
+
+/// Steering to the rest angles after homing (before the first motion command): each axis
+/// from the angle it was homed at to `cia402.wheels[i].rest_angle_rad`, on a braking-distance
+/// profile within the steering rate and acceleration limits, every command through the
+/// output guard ([`crate::reference::limits::guard_command`], the project's one limit check); the
+/// rolling drives hold against the steer→drive coupling. The link is ready once every axis
+/// is there and at rest.
+struct RestAlignment {
+    limits: Limits,
+    dt: f64,
+    rest: [f64; MAX_WHEELS],
+    coupling: f64,
+    /// Homings seen at the end of the last alignment ([`Master::homed_moves`]).
+    done_moves: u32,
+    since: Option<f64>,
+    last: Command,
+    angle: [Option<f64>; MAX_WHEELS],
+    rate: [f64; MAX_WHEELS],
+    failure: Option<(usize, u8, Role, DeviceFault)>,
+}
+
+/// Steering angle error (rad) and rate (rad/s) under which a wheel is at its rest angle.
+pub const REST_TOLERANCE: (f64, f64) = (3e-3, 0.02);
+/// Gain of the turn to the rest angle near it (1/s).
+pub const REST_GAIN: f64 = 6.0;
+/// Time the turn to the rest angles may take (s).
+pub const REST_TIMEOUT_S: f64 = 15.0;
+
+impl RestAlignment {
+    fn needed(&self, m: &Master) -> bool {
+        m.homed_moves() != self.done_moves
+    }
+
+    /// This cycle's steering setpoints toward the rest angles (None when done or not due).
+    fn step(
+        &mut self,
+        m: &Master,
+        n: usize,
+        t: f64,
+        setpoints: &mut [Setpoint; MAX_WHEELS],
+    ) -> bool {
+        if !m.ready() || !self.needed(m) || self.failure.is_some() {
+            self.since = None;
+            self.last = Command::zero(n);
+            return false;
+        }
+        let since = *self.since.get_or_insert(t);
+        let mut desired = Command::zero(n);
+        let mut there = true;
+        let a = self.limits.steer_accel;
+        let vmax = self.limits.steer_rate;
+        for i in 0..n {
+            let Some(phi) = self.angle[i] else {
+                there = false;
+                continue;
+            };
+            let e = angle::diff(self.rest[i], phi);
+            // The speed from which the axis stops at the rest angle at 80 % of the
+            // acceleration limit, capped at 80 % of the rate limit, and proportional near
+            // the angle (REST_GAIN: a settling time well above the drives' lag and the
+            // synchronous RPDO's cycle of delay, so the axis does not hunt).
+            let v = (2.0 * 0.8 * a * e.abs())
+                .sqrt()
+                .min(0.8 * vmax)
+                .min(REST_GAIN * e.abs())
+                .copysign(e);
+            desired.wheels[i].steer_rate = if e.abs() < REST_TOLERANCE.0 { 0.0 } else { v };
+            if e.abs() >= REST_TOLERANCE.0 || self.rate[i].abs() >= REST_TOLERANCE.1 {
+                there = false;
+            }
+        }
+        let (mut cmd, _) = guard_command(&self.limits, &self.last, &desired, self.dt);
+        for (sp, w) in setpoints.iter_mut().zip(cmd.wheels.iter_mut()).take(n) {
+            w.wheel_speed = 0.0;
+            *sp = Setpoint {
+                wheel_speed: -self.coupling * w.steer_rate,
+                steer_rate: w.steer_rate,
+                flags: SetpointFlags {
+                    enable: true,
+                    brake: false,
+                    fault_reset: false,
+                },
+            };
+        }
+        self.last = cmd;
+        let at_rest = (0..n).all(|i| cmd.wheels[i].steer_rate == 0.0);
+        if there && at_rest {
+            self.done_moves = m.homed_moves();
+            self.since = None;
+        } else if t - since > REST_TIMEOUT_S {
+            let worst = (0..n)
+                .max_by(|&x, &y| {
+                    let e = |k: usize| {
+                        self.angle[k].map_or(f64::INFINITY, |p| angle::diff(self.rest[k], p).abs())
+                    };
+                    e(x).total_cmp(&e(y))
+                })
+                .unwrap_or(0);
+            let node = m.node(worst, Role::Steer).unwrap_or(0);
+            self.failure = Some((
+                worst,
+                node,
+                Role::Steer,
+                DeviceFault::Boot(BootError::Homing {
+                    node,
+                    role: Role::Steer,
+                    error: HomingError::Timeout {
+                        ms: (REST_TIMEOUT_S * 1e3) as u32,
+                        phase: HomingPhase::RestAngle,
+                        statusword: None,
+                    },
+                }),
+            ));
+        }
+        true
+    }
 }
 
 /// The link of a cycle core.
@@ -256,13 +378,32 @@ impl Link {
                     wiring: Wiring::new(p),
                 })
             }
-            Protocol::Cia402 => Link::Cia402(Cia402Link {
-                master: Master::new(&p.cia402(), p.dt()),
-                stats: RxStats::default(),
-                n,
-                wiring: Wiring::new(p),
-                motors: [Setpoint::default(); MAX_WHEELS],
-            }),
+            Protocol::Cia402 => {
+                let c = p.cia402();
+                let mut rest = [0.0; MAX_WHEELS];
+                for (r, w) in rest.iter_mut().zip(&c.wheels) {
+                    *r = w.rest_angle_rad;
+                }
+                Link::Cia402(Cia402Link {
+                    master: Master::new(&c, p.dt()),
+                    stats: RxStats::default(),
+                    n,
+                    wiring: Wiring::new(p),
+                    motors: [Setpoint::default(); MAX_WHEELS],
+                    rest: RestAlignment {
+                        limits: p.limits,
+                        dt: p.dt(),
+                        rest,
+                        coupling: c.coupling,
+                        done_moves: 0,
+                        since: None,
+                        last: Command::zero(n),
+                        angle: [None; MAX_WHEELS],
+                        rate: [0.0; MAX_WHEELS],
+                        failure: None,
+                    },
+                })
+            }
         }
     }
 
@@ -303,6 +444,14 @@ impl Link {
                 }
             }
             Link::Cia402(l) => l.master.start_cycle(t, out),
+        }
+    }
+
+    /// Frames made due by the late frames of the last cycle (taken after
+    /// [`Link::start_cycle`]): CiA 402 SDO requests ([`Master::service`]); none natively.
+    pub fn service(&mut self, t: f64, out: &mut FrameBuf) {
+        if let Link::Cia402(l) = self {
+            l.master.service(t, out);
         }
     }
 
@@ -361,12 +510,22 @@ impl Link {
                                 angle: a,
                                 rate,
                                 seq,
-                            } => Updates::one(l.wiring.to_joints(Update::Steer {
-                                wheel,
-                                angle: angle::wrap(a),
-                                rate,
-                                seq,
-                            })),
+                            } => {
+                                // The rest alignment works on the joints, as the controller.
+                                let u = l.wiring.to_joints(Update::Steer {
+                                    wheel,
+                                    angle: angle::wrap(a),
+                                    rate,
+                                    seq,
+                                });
+                                if let Update::Steer { angle, rate, .. } = u {
+                                    if let Some(x) = l.rest.angle.get_mut(wheel) {
+                                        *x = Some(angle);
+                                        l.rest.rate[wheel] = rate;
+                                    }
+                                }
+                                Updates::one(u)
+                            }
                             Event::Drive { wheel, speed, .. } => {
                                 Updates::one(l.wiring.to_joints(Update::Drive { wheel, speed }))
                             }
@@ -429,12 +588,20 @@ impl Link {
                 }
             }
             Link::Cia402(l) => {
+                let mut own = [Setpoint::default(); MAX_WHEELS];
+                let n = l.n.min(setpoints.len());
+                own[..n].copy_from_slice(&setpoints[..n]);
+                let rest = l.rest.step(&l.master, l.n, t, &mut own);
                 if l.wiring.active {
-                    let k = setpoints.len().min(MAX_WHEELS);
-                    for (i, sp) in setpoints.iter().enumerate().take(k) {
+                    // Joints to motors: the controller's (or the rest alignment's) setpoints.
+                    let src: &[Setpoint] = if rest { &own[..l.n] } else { setpoints };
+                    let k = src.len().min(MAX_WHEELS);
+                    for (i, sp) in src.iter().enumerate().take(k) {
                         l.motors[i] = l.wiring.to_motors(i, sp);
                     }
                     l.master.finish_cycle(t, &l.motors[..k], out)
+                } else if rest {
+                    l.master.finish_cycle(t, &own[..l.n], out)
                 } else {
                     l.master.finish_cycle(t, setpoints, out)
                 }
@@ -442,18 +609,46 @@ impl Link {
         }
     }
 
-    /// True when the devices are ready for the supervisor to arm.
+    /// True when the devices are ready for the supervisor to arm (CiA 402: every device
+    /// runs, every steering axis is homed and at its rest angle).
     pub fn ready(&self) -> bool {
         match self {
             Link::Native(_) => true,
-            Link::Cia402(l) => l.master.ready(),
+            Link::Cia402(l) => l.master.ready() && !l.rest.needed(&l.master),
         }
     }
 
-    /// A boot failure (CiA 402): (wheel, node, role, fault).
+    /// The host cannot ramp the drives down itself (feedback lost, bus failing): CiA 402
+    /// drives get the Quick Stop command until re-armed ([`Master::quick_stop`]); natively
+    /// nothing more (the modules' own watchdogs stop them).
+    pub fn quick_stop(&mut self) {
+        if let Link::Cia402(l) = self {
+            l.master.quick_stop();
+        }
+    }
+
+    /// The controller's CAN interface went bus-off and was restarted: CiA 402 devices are
+    /// taken as lost and latch the fault until re-armed (then booted again); natively the
+    /// modules' watchdogs have tripped and the re-arm's fault reset clears them.
+    pub fn bus_off(&mut self) {
+        if let Link::Cia402(l) = self {
+            l.master.bus_off();
+        }
+    }
+
+    /// A boot failure (CiA 402): (wheel, node, role, fault): the first failed boot, homing or
+    /// rest turn, or, while not every device is ready, the first device fault latched.
     pub fn boot_failure(&self) -> Option<(usize, u8, Role, DeviceFault)> {
         match self {
             Link::Native(_) => None,
+            Link::Cia402(l) if l.rest.failure.is_some() => l.rest.failure,
+            // A device that faulted while the arm waits (lost, left operational, a fault EMCY
+            // during homing): the arm fails naming it, rather than waiting for ever.
+            Link::Cia402(l) if l.master.boot_failure().is_none() && !l.master.ready() => l
+                .master
+                .devices()
+                .iter()
+                .find_map(|d| d.fault.map(|f| (d.wheel, d.node, d.role, f))),
             Link::Cia402(l) => l.master.boot_failure().map(|(w, e)| {
                 let (node, role) = l
                     .master
@@ -499,7 +694,10 @@ impl Link {
                 l.state = [None; MAX_WHEELS];
                 l.fault_code = [0; MAX_WHEELS];
             }
-            Link::Cia402(l) => l.master.rearm(t),
+            Link::Cia402(l) => {
+                l.rest.failure = None;
+                l.master.rearm(t)
+            }
         }
     }
 
@@ -731,6 +929,30 @@ impl Buses {
                 l.finish_cycle(t, &self.scratch[..k], out);
             }
         }
+    }
+
+    /// [`Link::service`] on every bus, bus `b`'s frames into `outs[b]` (as
+    /// [`Buses::start_cycle`]).
+    pub fn service(&mut self, t: f64, outs: &mut [FrameBuf]) {
+        let last = outs.len().saturating_sub(1);
+        for (b, l) in self.links.iter_mut().enumerate() {
+            if let Some(out) = outs.get_mut(b.min(last)) {
+                l.service(t, out);
+            }
+        }
+    }
+
+    /// [`Link::quick_stop`] on every bus.
+    pub fn quick_stop(&mut self) {
+        for l in &mut self.links {
+            l.quick_stop();
+        }
+    }
+
+    /// The CiA 402 master of wheel `i`'s bus, and the wheel's index on that bus.
+    pub fn master_of_wheel(&self, i: usize) -> Option<(&Master, usize)> {
+        let (b, k) = *self.local.get(i)?;
+        self.links.get(b)?.master().map(|m| (m, k))
     }
 
     /// Every bus's devices are ready.

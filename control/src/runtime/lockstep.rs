@@ -90,8 +90,11 @@ impl LockstepBus for VirtualLockstepBus {
 pub struct LockstepReport {
     /// Cycles run.
     pub cycles: u64,
-    /// Wall-clock compute time of each cycle's control step (µs), for reports only.
-    pub compute_us: Vec<f64>,
+    /// Wall-clock compute times of the cycles' control steps, for reports only (a fixed-size
+    /// histogram: a run of any length uses the same memory).
+    pub compute: super::TimeHistogram,
+    /// Their sum (s).
+    pub compute_total_s: f64,
     /// Wall time of the whole run (s).
     pub wall_s: f64,
 }
@@ -188,6 +191,35 @@ fn deliver_to_peer(bus: &mut dyn LockstepBus, peer: &mut dyn LockstepPeer) {
     }
 }
 
+/// Everything the controller's node holds now into `st.rx_buf` (cleared first), through
+/// the hooks (lost while the interface is down, transformed by `on_rx`).
+fn receive(
+    st: &mut LockstepState,
+    core: &mut CycleCore,
+    bus: &mut dyn LockstepBus,
+    hooks: &mut StepHooks<'_>,
+) {
+    st.rx_buf.clear();
+    loop {
+        match bus.controller_recv() {
+            Ok(Some(_)) if hooks.iface_down => st.lost_iface_down += 1,
+            Ok(Some(f)) => {
+                let t = f.timestamp.as_secs_f64();
+                let buf = &mut st.rx_buf;
+                match hooks.on_rx.as_mut() {
+                    Some(h) => h(&f.frame, &mut |g| buf.push((t, g))),
+                    None => buf.push((t, f.frame)),
+                }
+            }
+            Ok(None) => break,
+            Err(_) => {
+                core.report_bus_error();
+                break;
+            }
+        }
+    }
+}
+
 /// One lockstep cycle: the peer catches up to the cycle start (its frames go out in time
 /// order), SYNC, the peer answers, frames up to the end of the feedback window reach the
 /// controller, the control step, the setpoints reach the peer. The record carries the
@@ -217,6 +249,21 @@ pub fn lockstep_cycle(
         around(true);
         core.start_cycle(t0.as_secs_f64(), &mut st.out);
         around(false);
+        // What came in after the last window (late answers, the devices' answers to the
+        // requests sent at the end of the last cycle) is taken now, before the SYNC goes
+        // out, as the real-time runtime does; what it made due goes out with the SYNC.
+        receive(st, core, bus, hooks);
+        let mut around = |on: bool| {
+            if let Some(h) = hooks.around_core.as_mut() {
+                h(on)
+            }
+        };
+        around(true);
+        for (t, f) in &st.rx_buf {
+            core.on_frame(f, *t);
+        }
+        core.after_late_frames(t0.as_secs_f64(), &mut st.out);
+        around(false);
         for f in st.out.as_slice() {
             if hooks.iface_down || bus.controller_send(f).is_err() {
                 core.report_bus_error();
@@ -231,25 +278,7 @@ pub fn lockstep_cycle(
         while let Ok(Some(_)) = bus.controller_recv() {}
         return false;
     }
-    st.rx_buf.clear();
-    loop {
-        match bus.controller_recv() {
-            Ok(Some(_)) if hooks.iface_down => st.lost_iface_down += 1,
-            Ok(Some(f)) => {
-                let t = f.timestamp.as_secs_f64();
-                let buf = &mut st.rx_buf;
-                match hooks.on_rx.as_mut() {
-                    Some(h) => h(&f.frame, &mut |g| buf.push((t, g))),
-                    None => buf.push((t, f.frame)),
-                }
-            }
-            Ok(None) => break,
-            Err(_) => {
-                core.report_bus_error();
-                break;
-            }
-        }
-    }
+    receive(st, core, bus, hooks);
     if hooks.iface_down {
         core.report_bus_error();
     }
@@ -328,10 +357,7 @@ pub fn run_lockstep_with(
     stop: &mut dyn FnMut(u64) -> bool,
     sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
 ) -> LockstepReport {
-    let mut report = LockstepReport {
-        compute_us: Vec::with_capacity(max_cycles.min(1 << 20) as usize),
-        ..Default::default()
-    };
+    let mut report = LockstepReport::default();
     let wall = std::time::Instant::now();
     let mut st = LockstepState::new(core);
     core.arm();
@@ -370,7 +396,8 @@ pub fn run_lockstep_with(
             ..Default::default()
         };
         lockstep_cycle(&mut st, core, bus, peer, &mut hooks);
-        report.compute_us.push(spent.as_secs_f64() * 1e6);
+        report.compute.record_us(spent.as_secs_f64() * 1e6);
+        report.compute_total_s += spent.as_secs_f64();
         sink(core.record(), core.wheel_xy());
         report.cycles = k + 1;
         if core.done() {

@@ -23,10 +23,12 @@
 //!
 //! The module is split by job: `core` (the cycle without IO), [`link`] (the cycle's wire
 //! side, native or CiA 402), `lockstep` (virtual time), `realtime` (the cycle thread),
-//! [`record`] (the per-cycle record), `summary` (the figures of a run) and [`scenario`]
-//! (the named runs: trajectory and configuration together); the items of the private
-//! modules are re-exported here.
+//! [`command_channel`](mod@command_channel) (commands into the cycle thread, with a priority lane for stop and
+//! re-arm), [`record`] (the per-cycle record), `summary` (the figures of a run) and
+//! [`scenario`] (the named runs: trajectory and configuration together); the items of the
+//! private modules are re-exported here.
 
+pub mod command_channel;
 mod core;
 pub mod link;
 mod lockstep;
@@ -35,6 +37,7 @@ pub mod record;
 pub mod scenario;
 mod summary;
 
+pub use self::command_channel::{command_channel, CommandReceiver, CommandSender};
 pub use self::core::{check_feasible, CycleCore, DFL_ENTRY_SPEED, FAULT_RESET_CYCLES};
 pub use self::lockstep::{
     lockstep_cycle, run_lockstep, run_lockstep_live, run_lockstep_with, LockstepBus, LockstepPeer,
@@ -44,7 +47,7 @@ pub use self::realtime::{
     realtime_setup, run_realtime, run_realtime_io, RealtimeIo, RealtimeOptions, RealtimeReport,
     MAX_COMMANDS_PER_CYCLE,
 };
-pub use self::summary::{percentile, RunSummary};
+pub use self::summary::{percentile, RunSummary, TimeHistogram};
 
 use crate::num::{Fixed3, Num};
 use crate::reference::avoidance::AvoidanceConfig;

@@ -1,12 +1,12 @@
 //! The real-time cycle thread: absolute deadlines, two wake-ups per cycle.
 
+use super::command_channel::CommandReceiver;
 use super::CycleCore;
 use crate::runtime::record::CycleRecord;
-use crate::service::ports::{BaseState, CommandEvent};
+use crate::service::ports::BaseState;
 use rollbase_driver::bus::CanBus;
 use rollbase_driver::frame::FrameBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::Receiver;
 use std::sync::mpsc::{SyncSender, TrySendError};
 
 /// Options of the real-time cycle thread.
@@ -185,9 +185,15 @@ pub fn run_realtime(
 
 /// The channels of a real-time run: records out (recorder), state out (the state port: ROS 2,
 /// status line), commands in (the command port). All bounded and non-blocking on the cycle
-/// thread: a full output channel drops (and counts) the value, commands are taken with
-/// `try_recv` (at most [`MAX_COMMANDS_PER_CYCLE`] per cycle) and stamped with the time the
-/// cycle took them.
+/// thread: a full output channel drops (and counts) the value; commands are taken without
+/// blocking — every stop, re-arm, end of stream and shutdown first, then at most
+/// [`MAX_COMMANDS_PER_CYCLE`] motion commands ([`command_channel`](mod@super::command_channel)) — and stamped with
+/// the time the cycle took them.
+///
+/// The consumers of `records` and `states` should poll (`try_recv`) rather than block in
+/// `recv`: a receiver blocked in `recv` registers with the channel's waker, and the cycle's
+/// `try_send` then takes the waker's mutex to wake it — a lock shared with a normal-priority
+/// thread that a busy machine may preempt while it holds it.
 #[derive(Default)]
 pub struct RealtimeIo<'a> {
     /// Where cycle records go.
@@ -195,7 +201,7 @@ pub struct RealtimeIo<'a> {
     /// Where the state port's values go.
     pub states: Option<&'a SyncSender<BaseState>>,
     /// Where commands come from.
-    pub commands: Option<&'a Receiver<CommandEvent>>,
+    pub commands: Option<&'a CommandReceiver>,
 }
 
 /// Most command events the cycle takes per cycle (the rest wait for the next cycle).
@@ -245,6 +251,9 @@ pub fn run_realtime_io(
         // cycle waits for the window's end anyway).
         core.start_cycle(td, &mut out);
         drain(bus, core, td - 1e-6, &mut report);
+        // What the late answers made due (CiA 402: a device's next SDO request) goes out
+        // with the SYNC, not a cycle later.
+        core.after_late_frames(td, &mut out);
         send_all(bus, core, &out, &mut report);
         sleep_until(deadline + window_ns);
         let now_rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
@@ -253,15 +262,10 @@ pub fn run_realtime_io(
         // during the feedback window acts in this cycle's setpoints (latency ≤ one period plus
         // the compute time), not one cycle later.
         if let Some(rx) = io.commands {
-            for _ in 0..MAX_COMMANDS_PER_CYCLE {
-                match rx.try_recv() {
-                    Ok(mut ev) => {
-                        ev.t = td;
-                        core.command(ev);
-                    }
-                    Err(_) => break,
-                }
-            }
+            rx.take(MAX_COMMANDS_PER_CYCLE, |mut ev| {
+                ev.t = td;
+                core.command(ev);
+            });
         }
         let collected = ts_ns(&monotonic_now());
         let tw = (collected - start) as f64 * 1e-9;
@@ -291,10 +295,15 @@ pub fn run_realtime_io(
             s.log_time_ns = time_origin_unix_ns.saturating_add((deadline - start).max(0) as u64);
             s.t = td;
             s.diagnostics.deadline_misses = report.deadline_misses;
+            if let Some(rx) = io.commands {
+                s.commands.dropped = rx.dropped();
+            }
         }
         {
             let st = *core.base_state();
-            core.record_mut().base = st;
+            let rec = core.record_mut();
+            rec.base = st;
+            rec.commands.dropped = st.commands.dropped;
         }
         if let Some(tx) = sink {
             match tx.try_send(*core.record()) {

@@ -118,6 +118,22 @@ pub struct JointState {
     pub no_leg: bool,
 }
 
+/// EMCY messages kept per wheel in its diagnostics (CiA 402).
+pub const EMCY_KEPT: usize = 4;
+
+/// One EMCY from a device of a wheel (CiA 402), as kept in the diagnostics.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct EmcyEntry {
+    /// Node-ID of the device.
+    pub node: u8,
+    /// Error code (0: none, or the error reset).
+    pub code: u16,
+    /// Error register (0: informational).
+    pub register: u8,
+    /// Receive time (ms on the run's time base).
+    pub at_ms: u64,
+}
+
 /// Receive-path and safety counters of one wheel module (or, with CiA 402, of the devices of
 /// one wheel), cumulative since start.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -136,6 +152,13 @@ pub struct ModuleDiagnostics {
     pub age_cycles: u32,
     /// Module state from STATUS (wire value; 255 = unknown).
     pub state: u8,
+    /// CiA 402: informational EMCYs of the wheel's devices (logged and counted, not faults).
+    pub emcy_informational: u32,
+    /// CiA 402: EMCYs of the wheel's devices that were faults.
+    pub emcy_faults: u32,
+    /// CiA 402: the last EMCYs of the wheel's devices, newest first (code 0 = empty slot
+    /// unless `at_ms` is set: an error reset).
+    pub emcy: [EmcyEntry; EMCY_KEPT],
 }
 
 /// Diagnostics of the bus and the modules.
@@ -209,6 +232,10 @@ pub struct CommandStats {
     pub ignored: u64,
     /// Why the last rejected command was rejected.
     pub last_rejection: Option<Rejection>,
+    /// Motion commands dropped before the cycle saw them because the command queue was
+    /// full (a source sending faster than the cycle takes them); set by the real-time
+    /// driver from its command channel ([`crate::runtime::command_channel`](mod@crate::runtime::command_channel)).
+    pub dropped: u64,
 }
 
 /// What the shaper is doing with the live command.

@@ -107,6 +107,18 @@ impl Emcy {
     }
 }
 
+/// True for an EMCY that reports no active error, so is logged and counted but is not a
+/// fault: the error reset (code 0), an error register of 0 (CiA 301: bit 0, generic error,
+/// is set while any error is active, so 0 means none is: a vendor's notice such as 0xFF01),
+/// the CAN warnings 0x8120 (error passive) and 0x8140 (recovered from bus-off), and the
+/// codes in `extra` (the platform file's `informational_emcy`).
+pub fn is_informational(e: &Emcy, extra: &[u16]) -> bool {
+    e.code == codes::NO_ERROR
+        || e.register == 0
+        || matches!(e.code, codes::CAN_PASSIVE | codes::BUS_OFF_RECOVERED)
+        || extra.contains(&e.code)
+}
+
 /// The class of an error code (CiA 301 table 21), or the specific meaning for the codes in
 /// [`codes`].
 pub fn describe(code: u16) -> &'static str {

@@ -9,6 +9,7 @@
 //! - [`cob`]: COB-IDs of the predefined connection set and their classification;
 //! - [`nmt`]: NMT commands, boot-up and heartbeat, SYNC;
 //! - [`sdo`]: expedited SDO requests and responses, abort codes as a typed enum;
+//! - [`sdo_client`]: one SDO transfer, expedited or segmented (`rollbase sdo`);
 //! - [`emcy`]: emergency frames and their error-code classes;
 //! - [`pdo`]: PDO communication and mapping parameters, packing mapped objects into frames,
 //!   the profile's fixed mappings;
@@ -16,6 +17,8 @@
 //!   device's transitions and the master's next controlword);
 //! - [`od`]: object indices both sides use;
 //! - [`units`]: drive increments, rpm, gear ratio and encoder steps to SI and back;
+//! - [`eds`]: EDS/DCF device description files (CiA 306) and the check of the boot plan
+//!   against them;
 //! - [`config`]: the profile's section of the platform file and the SDO configuration plan
 //!   written to every device at boot;
 //! - [`master`]: the sans-IO master (boot, configuration, cyclic exchange, supervision);
@@ -37,12 +40,14 @@ pub mod config;
 pub mod describe;
 pub mod doc;
 pub mod ds402;
+pub mod eds;
 pub mod emcy;
 pub mod master;
 pub mod nmt;
 pub mod od;
 pub mod pdo;
 pub mod sdo;
+pub mod sdo_client;
 pub mod units;
 
 /// Largest CANopen node-ID (1..=127; 0 addresses all nodes in NMT commands only).

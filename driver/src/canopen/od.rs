@@ -62,6 +62,43 @@ pub const INTERPOLATION_TIME_PERIOD: u16 = 0x60C2;
 /// CiA 402: target velocity (INTEGER32, velocity units).
 pub const TARGET_VELOCITY: u16 = 0x60FF;
 
+/// Pre-defined error field (ARRAY of UNSIGNED32: sub 0 number of errors, sub 1 the newest:
+/// error code in the low word, manufacturer information in the high word).
+pub const PRE_DEFINED_ERROR_FIELD: u16 = 0x1003;
+/// Manufacturer device name (VISIBLE_STRING, usually longer than 4 bytes: a segmented
+/// upload).
+pub const DEVICE_NAME: u16 = 0x1008;
+/// Manufacturer software version (VISIBLE_STRING).
+pub const SOFTWARE_VERSION: u16 = 0x100A;
+/// CiA 402: error code (UNSIGNED16): the drive's last error.
+pub const ERROR_CODE: u16 = 0x603F;
+/// CiA 402: quick stop option code (INTEGER16).
+pub const QUICK_STOP_OPTION: u16 = 0x605A;
+/// CiA 402: fault reaction option code (INTEGER16).
+pub const FAULT_REACTION_OPTION: u16 = 0x605E;
+/// CiA 402: home offset (INTEGER32, position units).
+pub const HOME_OFFSET: u16 = 0x607C;
+/// CiA 402: quick stop deceleration (UNSIGNED32, acceleration units).
+pub const QUICK_STOP_DECELERATION: u16 = 0x6085;
+/// CiA 402: polarity (UNSIGNED8: bit 7 position, bit 6 velocity).
+pub const POLARITY: u16 = 0x607E;
+/// CiA 402: position encoder resolution (sub 1 encoder increments, sub 2 motor revolutions).
+pub const POSITION_ENCODER_RESOLUTION: u16 = 0x608F;
+/// CiA 402: gear ratio (sub 1 motor revolutions, sub 2 shaft revolutions).
+pub const GEAR_RATIO: u16 = 0x6091;
+/// CiA 402: homing method (INTEGER8).
+pub const HOMING_METHOD: u16 = 0x6098;
+/// CiA 402: homing speeds (sub 1 during search for switch, sub 2 during search for zero;
+/// UNSIGNED32, velocity units).
+pub const HOMING_SPEEDS: u16 = 0x6099;
+/// CiA 402: homing acceleration (UNSIGNED32, acceleration units).
+pub const HOMING_ACCELERATION: u16 = 0x609A;
+/// CiA 402: SI unit velocity (UNSIGNED32).
+pub const SI_UNIT_VELOCITY: u16 = 0x60A9;
+/// CiA 402: digital inputs (UNSIGNED32: bit 0 negative limit switch, 1 positive limit
+/// switch, 2 home switch, 16–31 manufacturer-specific).
+pub const DIGITAL_INPUTS: u16 = 0x60FD;
+
 /// CiA 406: position value (UNSIGNED32, measuring steps).
 pub const POSITION_VALUE: u16 = 0x6004;
 /// CiA 406: linear encoder measuring step settings (RECORD: 1 position step in nm,
@@ -70,6 +107,8 @@ pub const MEASURING_STEP: u16 = 0x6005;
 /// CiA 406: speed value (ARRAY of INTEGER16; sub 1 = channel 1).
 pub const SPEED_VALUE: u16 = 0x6030;
 
+/// CiA 402 homing mode, the value of 0x6060 while a drive homes.
+pub const MODE_HOMING: i8 = 6;
 /// CiA 402 cyclic synchronous velocity mode, the value of 0x6060 the master writes.
 pub const MODE_CSV: i8 = 9;
 /// Device profile number of drives (low word of 0x1000).

@@ -221,10 +221,26 @@ pub type Write = (u16, u8, SdoData);
 /// clear the mapping (sub 0 = 0), write the entries, set the number of entries, make the
 /// PDO valid again with its COB-ID.
 pub fn config_writes(layout: &PdoLayout, node: u8, comm: &PdoComm) -> Vec<Write> {
+    config_writes_entries(layout.dir, layout.num, layout.entries, node, comm)
+}
+
+/// [`config_writes`] for a mapping given as entries (PDO `num` 1..=4 in direction `dir`).
+pub fn config_writes_entries(
+    dir: Direction,
+    num: u8,
+    entries: &[MapEntry],
+    node: u8,
+    comm: &PdoComm,
+) -> Vec<Write> {
+    let layout = PdoLayout {
+        dir,
+        num,
+        entries: &[],
+    };
     let comm_ix = layout.comm_index();
     let map_ix = layout.map_index();
     let cob = u32::from(layout.cob_id(node))
-        | match layout.dir {
+        | match dir {
             Direction::Tx => od::PDO_COB_NO_RTR,
             Direction::Rx => 0,
         };
@@ -240,7 +256,7 @@ pub fn config_writes(layout: &PdoLayout, node: u8, comm: &PdoComm) -> Vec<Write>
             SdoData::u8(comm.transmission),
         ),
     ];
-    if layout.dir == Direction::Tx {
+    if dir == Direction::Tx {
         w.push((comm_ix, od::PDO_INHIBIT, SdoData::u16(comm.inhibit_100us)));
     }
     w.push((
@@ -249,10 +265,10 @@ pub fn config_writes(layout: &PdoLayout, node: u8, comm: &PdoComm) -> Vec<Write>
         SdoData::u16(comm.event_timer_ms),
     ));
     w.push((map_ix, 0, SdoData::u8(0)));
-    for (i, e) in layout.entries.iter().enumerate() {
+    for (i, e) in entries.iter().enumerate() {
         w.push((map_ix, (i + 1) as u8, SdoData::u32(e.raw())));
     }
-    w.push((map_ix, 0, SdoData::u8(layout.entries.len() as u8)));
+    w.push((map_ix, 0, SdoData::u8(entries.len() as u8)));
     w.push((comm_ix, od::PDO_COB_ID, SdoData::u32(cob)));
     w
 }

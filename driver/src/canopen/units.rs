@@ -33,13 +33,59 @@ pub enum VelocityUnit {
     MilliRpm,
 }
 
+impl VelocityUnit {
+    /// The value of CiA 402's SI unit velocity object 0x60A9 for this unit: prefix (a power of
+    /// ten, bits 24–31), numerator unit (bits 16–23), denominator (time) unit (bits 8–15),
+    /// bits 0–7 reserved (0). Unit codes as CiA 303-2 lists them and drives use them: 0xB5
+    /// increments, 0xB4 revolutions; 0x03 second, 0x47 minute; prefix 0xFD = 10⁻³. So
+    /// increments/s = 0x00B50300, rpm = 0x00B44700, 0.001 rpm = 0xFDB44700 (Nanotec's and
+    /// Synapticon's manuals for 0x60A9; ecmc's Nanotec N6 configuration for inc/s).
+    pub fn si_unit_velocity(self) -> u32 {
+        match self {
+            Self::IncrementsPerSecond => 0x00B5_0300,
+            Self::Rpm => 0x00B4_4700,
+            Self::MilliRpm => 0xFDB4_4700,
+        }
+    }
+}
+
+/// A value of 0x60A9 in words (`0.001 rev/min`, `inc/s`, or the codes when unknown).
+pub fn describe_si_velocity(v: u32) -> String {
+    let prefix = (v >> 24) as u8 as i8;
+    let unit = match (v >> 16) as u8 {
+        0xB5 => "inc".to_string(),
+        0xB4 => "rev".to_string(),
+        0x01 => "m".to_string(),
+        0x10 => "rad".to_string(),
+        0x41 => "°".to_string(),
+        u => format!("unit 0x{u:02X}"),
+    };
+    let time = match (v >> 8) as u8 {
+        0x03 => "s".to_string(),
+        0x47 => "min".to_string(),
+        0x48 => "h".to_string(),
+        t => format!("time unit 0x{t:02X}"),
+    };
+    let scale = match prefix {
+        0 => String::new(),
+        -3 => "0.001 ".to_string(),
+        -2 => "0.01 ".to_string(),
+        -1 => "0.1 ".to_string(),
+        p => format!("10^{p} "),
+    };
+    format!("{scale}{unit}/{time}")
+}
+
 /// One kind of drive (rolling or steering): motor encoder, gear, velocity unit.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DriveUnits {
     /// Motor encoder increments per motor revolution (after quadrature: 4 × lines).
     pub increments_per_rev: u32,
-    /// Gear ratio, motor revolutions per joint (wheel or steering axis) revolution (> 0).
+    /// Gear ratio, motor revolutions per joint (wheel or steering axis) revolution; negative
+    /// for a motor mounted mirrored (its positive direction turns the joint the negative way:
+    /// the host converts with the sign; the drive's polarity 0x607E is the drive-side
+    /// alternative, never both).
     pub gear_ratio: f64,
     /// Unit of 0x60FF and 0x606C.
     pub velocity_unit: VelocityUnit,
@@ -55,11 +101,14 @@ impl DriveUnits {
                 "must be at least 1 (increments per motor revolution, after quadrature)",
             ));
         }
-        if !(self.gear_ratio.is_finite() && self.gear_ratio > 0.0 && self.gear_ratio < 1e6) {
+        if !(self.gear_ratio.is_finite()
+            && self.gear_ratio.abs() >= 1e-6
+            && self.gear_ratio.abs() < 1e6)
+        {
             return Err(Invalid::new(
                 format!("{field}.gear_ratio"),
                 self.gear_ratio,
-                "must be a positive number (motor revolutions per joint revolution)",
+                "must be a non-zero number (motor revolutions per joint revolution; negative for a motor mounted mirrored)",
             ));
         }
         Ok(())
@@ -79,9 +128,10 @@ impl DriveUnits {
         }
     }
 
-    /// Joint rate (rad/s) of one velocity unit: the resolution of the velocity objects.
+    /// Joint rate (rad/s) of one velocity unit: the resolution of the velocity objects
+    /// (positive, whatever the sign of the gear).
     pub fn velocity_resolution(&self) -> f64 {
-        1.0 / self.velocity_scale()
+        (1.0 / self.velocity_scale()).abs()
     }
 
     /// Joint rate (rad/s) of a velocity value.
@@ -230,6 +280,30 @@ mod tests {
         };
         let e = bad.validate("cia402.drive").unwrap_err();
         assert_eq!(e.field, "cia402.drive.gear_ratio");
+        // A mirrored motor: a negative ratio turns every conversion's sign, both ways.
+        let mirrored = DriveUnits {
+            gear_ratio: -30.0,
+            ..d
+        };
+        assert!(mirrored.validate("cia402.drive").is_ok());
+        assert_eq!(mirrored.velocity_from_si(TAU), Some(-491_520));
+        assert!((mirrored.velocity_to_si(-491_520) - TAU).abs() < 1e-12);
+        assert!((mirrored.position_to_rad(-491_520) - TAU).abs() < 1e-12);
+        assert_eq!(mirrored.rad_to_position(TAU), -491_520);
+        assert!(mirrored.velocity_resolution() > 0.0);
+    }
+
+    #[test]
+    fn si_unit_velocity_codes() {
+        assert_eq!(
+            VelocityUnit::IncrementsPerSecond.si_unit_velocity(),
+            0x00B5_0300
+        );
+        assert_eq!(VelocityUnit::Rpm.si_unit_velocity(), 0x00B4_4700);
+        assert_eq!(VelocityUnit::MilliRpm.si_unit_velocity(), 0xFDB4_4700);
+        assert_eq!(describe_si_velocity(0x00B5_0300), "inc/s");
+        assert_eq!(describe_si_velocity(0xFDB4_4700), "0.001 rev/min");
+        assert_eq!(describe_si_velocity(0x0001_0300), "m/s");
     }
 
     #[test]

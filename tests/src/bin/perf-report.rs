@@ -686,7 +686,7 @@ fn report(o: &Options) -> Result<(), String> {
         let r = run(&RunOptions::new(Scenario::Seed000));
         let platform_s = r.report.cycles as f64 * p.dt();
         rtf.push(platform_s / r.report.wall_s);
-        step_share.push(r.report.compute_us.iter().sum::<f64>() * 1e-6 / r.report.wall_s);
+        step_share.push(r.report.compute_total_s / r.report.wall_s);
         last = Some((
             r.report.cycles,
             platform_s,

@@ -9,7 +9,16 @@
 //! cargo run --release -p rollbase-tests --bin reliability-live -- --compare DIR=LABEL
 //! # one check only, without writing the file:
 //! cargo run --release -p rollbase-tests --bin reliability-live -- --only bridge-memory --no-write
+//! # the real-time runs under load (issue 27; 10 minutes each by default, the ROS 2 run in a
+//! # private network namespace), rewriting only their section of the file:
+//! unshare -n sh -c 'ip link set lo up; target/release/reliability-live --load --compare DIR=LABEL'
 //! ```
+//!
+//! `--load` (`--load-secs S` to shorten): a SCHED_FIFO timer loop without rollbase under the
+//! load (what the machine does to any real-time thread), then for each build the live demo,
+//! the live demo as a ROS 2 node and `drive` with `rollbase-sim` over the bridge, each for S
+//! seconds while 2 × the cores busy loops run at normal priority; faults are counted and
+//! re-armed, deadline misses come from the summary.
 //!
 //! Every check is a function `fn(&Build) -> Result<Row, String>` listed in [`CHECKS`]: add a
 //! check by writing one and adding it there. Each spawns what it needs on loopback only,
@@ -674,6 +683,385 @@ fn bridge_memory(b: &Build) -> Result<Row, String> {
     })
 }
 
+// ---------------------------------------------------------------------------------------------
+// Real-time runs under load (issue 27): `--load [--load-secs S]`
+// ---------------------------------------------------------------------------------------------
+
+/// What the long runs do to the machine: 2 × the cores busy loops at normal priority.
+fn hogs(stop: &Arc<AtomicBool>) -> Vec<std::thread::JoinHandle<()>> {
+    let n = 2 * std::thread::available_parallelism().map_or(2, |n| n.get());
+    (0..n)
+        .map(|_| {
+            let stop = stop.clone();
+            std::thread::spawn(move || {
+                let mut x = 0u64;
+                while !stop.load(Ordering::Relaxed) {
+                    for _ in 0..100_000 {
+                        x = std::hint::black_box(
+                            x.wrapping_mul(6364136223846793005).wrapping_add(1),
+                        );
+                    }
+                }
+            })
+        })
+        .collect()
+}
+
+/// Whether this process's network namespace has only loopback (the DDS rule).
+fn only_loopback() -> bool {
+    std::fs::read_to_string("/proc/net/dev").is_ok_and(|t| {
+        t.lines()
+            .skip(2)
+            .filter_map(|l| l.split(':').next())
+            .all(|n| n.trim() == "lo")
+    })
+}
+
+/// The three long runs: the live demo, the live demo as a ROS 2 node, `drive` with
+/// `rollbase-sim` over the bridge.
+#[derive(Clone, Copy, PartialEq)]
+enum LoadKind {
+    Demo,
+    Ros2,
+    Drive,
+}
+
+/// The DDS domain of the ROS 2 run (in its own network namespace anyway).
+const LOAD_DOMAIN: u16 = 57;
+
+/// A live run of `secs` under the load: commands 3 s on (20 Hz, 0.3 m/s forward then back,
+/// 0.2 rad/s), 2 s off (the command timeout stops the platform every 5 s), re-armed on stdin
+/// after each fault; then SIGTERM. Counts the faults (the service's `fault:` log lines) and
+/// reads the summary.
+fn load_run(b: &Build, kind: LoadKind, secs: u64) -> Result<Row, String> {
+    if kind == LoadKind::Ros2 && !only_loopback() {
+        return Err("the ROS 2 run needs a private network namespace with only loopback: unshare -n sh -c 'ip link set lo up; …'".into());
+    }
+    let tag = match kind {
+        LoadKind::Demo => "demo",
+        LoadKind::Ros2 => "ros2",
+        LoadKind::Drive => "drive",
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    let load_threads = hogs(&stop);
+    std::thread::sleep(Duration::from_secs(2));
+    let load = loadavg();
+    let mut extra: Vec<Proc> = Vec::new();
+    let mut cmd = Command::new(b.bin("rollbase"));
+    let what = match kind {
+        LoadKind::Demo => {
+            cmd.args(["demo", "--commands", "-", "--json"]);
+            "`rollbase demo --commands -` (simulator in-process)".to_string()
+        }
+        LoadKind::Ros2 => {
+            cmd.args(["demo", "--ros2", "--commands", "-", "--json"])
+                .env("ROS_DOMAIN_ID", LOAD_DOMAIN.to_string());
+            "`rollbase demo --ros2 --commands -` (cmd_vel from a ROS 2 peer, re-arm on stdin)"
+                .to_string()
+        }
+        LoadKind::Drive => {
+            let blog = log_path("load-bridge");
+            let (bridge, port) = start_bridge(
+                &Build {
+                    dir: b.dir.clone(),
+                    label: b.label.clone(),
+                    current: b.current,
+                    fifo: false,
+                },
+                &blog,
+            )?;
+            extra.push(bridge);
+            let url = format!("socketcand://127.0.0.1:{port}/vcan0");
+            let slog = std::fs::File::create(log_path("load-sim")).map_err(|e| e.to_string())?;
+            extra.push(Proc::spawn(
+                Command::new(b.bin("rollbase-sim"))
+                    .args(["--bus", &url])
+                    .stdout(Stdio::null())
+                    .stderr(slog),
+                "rollbase-sim",
+            )?);
+            std::thread::sleep(Duration::from_millis(500));
+            cmd.args(["drive", "--bus", &url, "--commands", "-", "--json"]);
+            "`rollbase drive --commands -` with `rollbase bridge` and `rollbase-sim` (each at its own default priority)".to_string()
+        }
+    };
+    let elog = log_path(&format!("load-{tag}"));
+    let olog = log_path(&format!("load-{tag}-out"));
+    let mut p = Proc::spawn(
+        cmd.env("RUST_LOG", "info")
+            .stdin(Stdio::piped())
+            .stdout(std::fs::File::create(&olog).map_err(|e| e.to_string())?)
+            .stderr(std::fs::File::create(&elog).map_err(|e| e.to_string())?),
+        tag,
+    )?;
+    let mut stdin = p.child.stdin.take().ok_or("no stdin")?;
+    let until = Instant::now() + Duration::from_secs(30);
+    while !std::fs::read_to_string(&elog)
+        .unwrap_or_default()
+        .contains("state: tracking")
+    {
+        if Instant::now() > until {
+            return Err(format!(
+                "{tag} never tracked: {}",
+                std::fs::read_to_string(&elog).unwrap_or_default()
+            ));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let ros = if kind == LoadKind::Ros2 {
+        use rollbase::ros2::dds::{qos, Dds};
+        use rollbase::ros2::msg::Twist;
+        let peer = Dds::new(LOAD_DOMAIN, &[]).map_err(|e| format!("DDS participant: {e}"))?;
+        let pb = peer
+            .writer::<Twist>("/cmd_vel", qos::ros_default())
+            .map_err(|e| e.to_string())?;
+        Some((peer, pb))
+    } else {
+        None
+    };
+    let t0 = Instant::now();
+    let mut faults_seen = 0usize;
+    let mut k = 0u64;
+    while t0.elapsed() < Duration::from_secs(secs) {
+        let t = t0.elapsed().as_secs_f64();
+        if t % 5.0 < 3.0 {
+            let vx = if (t / 5.0) as u64 % 2 == 0 { 0.3 } else { -0.3 };
+            match &ros {
+                Some((_, pb)) => {
+                    let mut tw = rollbase::ros2::msg::Twist::default();
+                    tw.linear.x = vx;
+                    tw.angular.z = 0.2;
+                    let _ = pb.write(tw, None);
+                }
+                None => {
+                    let _ = writeln!(stdin, "{{\"vx\": {vx}, \"vy\": 0.0, \"omega\": 0.2}}");
+                }
+            }
+        }
+        k += 1;
+        if k % 10 == 0 {
+            let faults = std::fs::read_to_string(&elog)
+                .unwrap_or_default()
+                .matches(" fault: ")
+                .count();
+            if faults > faults_seen {
+                faults_seen = faults;
+                let _ = writeln!(stdin, "{{\"rearm\": true}}");
+            }
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    drop(stdin);
+    let code = p.stop();
+    for mut e in extra.drain(..).rev() {
+        e.stop();
+    }
+    drop(ros);
+    stop.store(true, Ordering::Relaxed);
+    for h in load_threads {
+        let _ = h.join();
+    }
+    let err = std::fs::read_to_string(&elog).unwrap_or_default();
+    let out = std::fs::read_to_string(&olog).unwrap_or_default();
+    let _ = std::fs::remove_file(&elog);
+    let _ = std::fs::remove_file(&olog);
+    let _ = std::fs::remove_file(log_path("load-bridge"));
+    let _ = std::fs::remove_file(log_path("load-sim"));
+    let v: serde_json::Value = out
+        .lines()
+        .rev()
+        .find_map(|l| serde_json::from_str(l).ok())
+        .ok_or_else(|| {
+            format!(
+                "no JSON summary (exit {code:?}): {}",
+                err.lines().rev().take(5).collect::<Vec<_>>().join(" / ")
+            )
+        })?;
+    let faults: Vec<&str> = err
+        .lines()
+        .filter_map(|l| l.split(" fault: ").nth(1))
+        .map(|r| r.split("; controlled stop").next().unwrap_or(r))
+        .collect();
+    let mut reasons: Vec<String> = Vec::new();
+    for f in &faults {
+        let short: String = f.split(':').next().unwrap_or(f).to_string();
+        if !reasons.contains(&short) {
+            reasons.push(short);
+        }
+    }
+    Ok(Row {
+        check: "real-time run under a CPU load of 2× the cores",
+        setup: format!(
+            "{}: {what} for {secs} s, as root, while {} busy loops run at normal priority; commands 3 s on (20 Hz), 2 s off (a command-timeout stop every 5 s), re-armed after a fault; load average at the start {load}",
+            b.label,
+            2 * std::thread::available_parallelism().map_or(2, |n| n.get()),
+        ),
+        measured: format!(
+            "{} cycles, {} deadline misses, {} fault(s){}, {} command timeouts; final state {}; exit code after SIGTERM {}",
+            v["cycles"],
+            v["deadline_misses"],
+            faults.len(),
+            if reasons.is_empty() { String::new() } else { format!(" ({})", reasons.join(", ")) },
+            v["command_timeouts"],
+            v["supervisor_final_state"].as_str().unwrap_or("?"),
+            code.map(|c| c.to_string()).unwrap_or_else(|| "none (killed)".into()),
+        ),
+        pass: faults.is_empty() && code == Some(0),
+    })
+}
+
+/// What the machine does to any SCHED_FIFO thread under the same load, without rollbase: a
+/// timer loop at priority 80 with locked memory, woken at the cycle's two instants (every
+/// 4 ms and 2 ms after), measuring how late each wake-up is.
+fn load_timer(secs: u64) -> Row {
+    let stop = Arc::new(AtomicBool::new(false));
+    let load_threads = hogs(&stop);
+    std::thread::sleep(Duration::from_secs(2));
+    let load = loadavg();
+    let lateness = std::thread::spawn(move || {
+        let rt = fifo(80);
+        // SAFETY: mlockall has no memory-safety preconditions.
+        unsafe {
+            libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE);
+        }
+        let now = || {
+            let mut ts = libc::timespec {
+                tv_sec: 0,
+                tv_nsec: 0,
+            };
+            // SAFETY: clock_gettime writes into the timespec.
+            unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+            ts.tv_sec as i128 * 1_000_000_000 + ts.tv_nsec as i128
+        };
+        let sleep_until = |ns: i128| {
+            let ts = libc::timespec {
+                tv_sec: (ns / 1_000_000_000) as libc::time_t,
+                tv_nsec: (ns % 1_000_000_000) as libc::c_long,
+            };
+            // SAFETY: an absolute sleep with a valid timespec.
+            while unsafe {
+                libc::clock_nanosleep(
+                    libc::CLOCK_MONOTONIC,
+                    libc::TIMER_ABSTIME,
+                    &ts,
+                    std::ptr::null_mut(),
+                )
+            } == libc::EINTR
+            {}
+        };
+        let period = 4_000_000i128;
+        let mut d = now() + period;
+        let end = d + secs as i128 * 1_000_000_000;
+        let mut late: Vec<i64> = Vec::with_capacity((secs as usize + 1) * 500);
+        while d < end {
+            for off in [0, 2_000_000] {
+                sleep_until(d + off);
+                late.push(((now() - d - off) / 1000) as i64);
+            }
+            d += period;
+            let n = now();
+            if n > d + period {
+                d += ((n - d) / period) * period;
+            }
+        }
+        (rt, late)
+    });
+    let (rt, mut late) = lateness.join().unwrap_or((false, Vec::new()));
+    stop.store(true, Ordering::Relaxed);
+    for h in load_threads {
+        let _ = h.join();
+    }
+    late.sort_unstable();
+    let q = |p: f64| {
+        late.get(((late.len().max(1) - 1) as f64 * p) as usize)
+            .copied()
+            .unwrap_or(0)
+    };
+    let over = |ms: i64| late.iter().filter(|&&x| x > ms * 1000).count();
+    Row {
+        check: "SCHED_FIFO timer loop under the same load, without rollbase (the machine's share)",
+        setup: format!(
+            "a thread at {} with locked memory sleeping to absolute deadlines at the cycle's two instants (every 4 ms, and 2 ms after) for {secs} s while {} busy loops run at normal priority; load average at the start {load}",
+            if rt { "SCHED_FIFO 80" } else { "normal priority (SCHED_FIFO not permitted)" },
+            2 * std::thread::available_parallelism().map_or(2, |n| n.get()),
+        ),
+        measured: format!(
+            "{} wake-ups; lateness p50 {} µs, p99 {} µs, p99.9 {} µs, max {:.1} ms; later than 1 ms: {}, 4 ms: {}, 16 ms: {}",
+            late.len(),
+            q(0.5),
+            q(0.99),
+            q(0.999),
+            late.last().copied().unwrap_or(0) as f64 / 1000.0,
+            over(1),
+            over(4),
+            over(16),
+        ),
+        pass: true,
+    }
+}
+
+/// Markers of the load section in docs/reliability-live.md (rewritten by `--load` alone).
+const LOAD_BEGIN: &str =
+    "<!-- load-runs: generated by `reliability-live --load`; edit nothing between the markers -->";
+const LOAD_END: &str = "<!-- /load-runs -->";
+
+/// `--load`: the timer baseline, then each build's three long runs; replaces the section
+/// between the markers (or appends it) and keeps the rest of the file.
+fn run_load(builds: &[Build], secs: u64, write: bool) -> usize {
+    let mut md =
+        format!("{LOAD_BEGIN}\n\n| check | setup | measured | result |\n|---|---|---|---|\n");
+    let mut failed = 0;
+    let mut emit = |row: Row, current: bool, md: &mut String| {
+        if !row.pass && current {
+            failed += 1;
+        }
+        let line = format!(
+            "| {} | {} | {} | {} |",
+            cell(row.check),
+            cell(&row.setup),
+            cell(&row.measured),
+            if row.pass { "pass" } else { "**FAIL**" }
+        );
+        println!("{line}");
+        let _ = writeln!(md, "{line}");
+    };
+    eprintln!("running the timer baseline ({} s)…", secs.min(120));
+    emit(load_timer(secs.min(120)), false, &mut md);
+    for b in builds.iter().filter(|b| !b.fifo) {
+        for kind in [LoadKind::Demo, LoadKind::Ros2, LoadKind::Drive] {
+            eprintln!("running a {secs} s load run ({})…", b.label);
+            let row = load_run(b, kind, secs).unwrap_or_else(|e| Row {
+                check: "real-time run under a CPU load of 2× the cores",
+                setup: b.label.clone(),
+                measured: format!("could not run: {e}"),
+                pass: false,
+            });
+            emit(row, b.current, &mut md);
+        }
+    }
+    md.push('\n');
+    md.push_str(LOAD_END);
+    if write {
+        let path = root().join("docs/reliability-live.md");
+        let old = std::fs::read_to_string(&path).unwrap_or_default();
+        let new = match (old.find(LOAD_BEGIN), old.find(LOAD_END)) {
+            (Some(a), Some(z)) if z > a => {
+                format!("{}{md}{}", &old[..a], &old[z + LOAD_END.len()..])
+            }
+            _ => format!(
+                "{}\n## Real-time runs under load (issue 27)\n\n{md}\n",
+                old.trim_end()
+            ),
+        };
+        if let Err(e) = std::fs::write(&path, new) {
+            eprintln!("cannot write {}: {e}", path.display());
+            return failed + 1;
+        }
+        eprintln!("wrote the load section of {}", path.display());
+    }
+    failed
+}
+
 fn cell(s: &str) -> String {
     s.replace('|', "\\|").replace('\n', " ")
 }
@@ -687,10 +1075,23 @@ fn main() {
     }];
     let mut only: Option<String> = None;
     let mut write = true;
+    let mut load: Option<u64> = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
             "--no-write" => write = false,
+            "--load" => {
+                load.get_or_insert(600);
+            }
+            "--load-secs" => match args.next().and_then(|v| v.parse().ok()) {
+                Some(v) if v > 0 => load = Some(v),
+                _ => {
+                    eprintln!(
+                        "--load-secs S: the length of each load run in seconds (default 600)"
+                    );
+                    std::process::exit(2);
+                }
+            },
             "--only" => only = args.next(),
             "--compare" => match args.next().as_deref().and_then(|v| v.split_once('=')) {
                 Some((dir, label)) => builds.push(Build {
@@ -751,6 +1152,14 @@ fn main() {
                 std::process::exit(2);
             }
         }
+    }
+    if let Some(secs) = load {
+        let failed = run_load(&builds, secs, write);
+        if failed > 0 {
+            eprintln!("{failed} load run(s) of this build failed");
+            std::process::exit(1);
+        }
+        return;
     }
     let mut md = String::from(
         "# rollbase reliability: process-level checks\n\n\

@@ -35,8 +35,8 @@ use rollbase::ros2::msg::{JointState, Odometry, Twist};
 use rollbase::ros2::{spawn_node, Ros2Options};
 use rollbase_control::runtime::record::CycleRecord;
 use rollbase_control::runtime::{
-    percentile, realtime_setup, run_realtime_io, CycleCore, RealtimeIo, RealtimeOptions,
-    RuntimeConfig,
+    command_channel, percentile, realtime_setup, run_realtime_io, CycleCore, RealtimeIo,
+    RealtimeOptions, RuntimeConfig,
 };
 use rollbase_control::service::ports::{BaseState, CommandEvent, CommandKind};
 use rollbase_control::Platform;
@@ -233,20 +233,29 @@ fn latency(n: usize) -> Result<Latency, String> {
     });
 
     // node → forwarder (stamps arrivals) → the cycle's command queue.
-    let (node_tx, node_rx) = std::sync::mpsc::sync_channel::<CommandEvent>(256);
-    let (cmd_tx, cmd_rx) = std::sync::mpsc::sync_channel::<CommandEvent>(256);
+    // The command channel has no blocking receive (the cycle never waits): the forwarder
+    // polls it every 50 µs, which the latency figures include.
+    let (node_tx, node_rx) = command_channel(256, 64);
+    let (cmd_tx, cmd_rx) = command_channel(256, 64);
     let arrivals = Arc::new(Mutex::new(Vec::<(usize, Instant)>::new()));
     let arr = arrivals.clone();
+    let fwd_stop = Arc::new(AtomicBool::new(false));
+    let fs = fwd_stop.clone();
     let forwarder = std::thread::spawn(move || {
-        while let Ok(ev) = node_rx.recv() {
-            let now = Instant::now();
-            if let CommandKind::Motion(m) = ev.kind {
-                if let Ok(mut a) = arr.lock() {
-                    a.push((tag_of(m.twist.vx), now));
+        while !fs.load(Ordering::SeqCst) {
+            let mut any = false;
+            node_rx.take(usize::MAX, |ev: CommandEvent| {
+                any = true;
+                let now = Instant::now();
+                if let CommandKind::Motion(m) = ev.kind {
+                    if let Ok(mut a) = arr.lock() {
+                        a.push((tag_of(m.twist.vx), now));
+                    }
                 }
-            }
-            if cmd_tx.send(ev).is_err() {
-                break;
+                let _ = cmd_tx.try_send(ev);
+            });
+            if !any {
+                std::thread::sleep(Duration::from_micros(50));
             }
         }
     });
@@ -340,6 +349,7 @@ fn latency(n: usize) -> Result<Latency, String> {
     let report = cycle.join().map_err(|_| "the cycle thread panicked")?;
     let cycles = collector.join().map_err(|_| "the collector panicked")?;
     node.shutdown();
+    fwd_stop.store(true, Ordering::SeqCst);
     let _ = forwarder.join();
     let _ = state_fwd.join();
     sim_stop.store(true, Ordering::SeqCst);

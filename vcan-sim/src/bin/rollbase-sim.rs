@@ -13,9 +13,12 @@
 //! bus carries CANopen instead: per wheel a CiA 402 rolling drive, a CiA 402 steering drive
 //! and a CiA 406 leg encoder, at the node-IDs of the file's `[cia402]` table, each with its
 //! object dictionary, SDO server, NMT, heartbeat, EMCY and PDOs (configured by the master
-//! over SDO). SIGINT (Ctrl-C) and SIGTERM (`kill`, systemd, a test harness) stop it cleanly:
-//! it prints its summary and exits 0. Its output never kills it: SIGPIPE is ignored and every
-//! write to stdout/stderr ignores errors (a closed terminal or a `| head` that went away).
+//! over SDO). SIGINT (Ctrl-C), SIGTERM (`kill`, systemd, a test harness), SIGHUP (a closed
+//! terminal or ssh session) and SIGQUIT stop it cleanly: it prints its summary and exits 0;
+//! SIGUSR1 and SIGUSR2 are ignored. A bad option or file, or a bus that cannot be opened,
+//! exits 2 before anything runs; a failure while it runs exits 1. Its output never kills it:
+//! SIGPIPE is ignored and every write to stdout/stderr ignores errors (a closed terminal or a
+//! `| head` that went away).
 //!
 //! `--bus virtual` creates an in-process virtual bus that no other process can reach: it is
 //! only useful to check a configuration. To run the controller against the simulator without
@@ -115,6 +118,19 @@ enum CliError {
     Runtime(std::io::Error),
     #[error("the simulator thread panicked")]
     Panicked,
+    #[error("the simulation failed: {0}")]
+    Run(SimError),
+}
+
+impl CliError {
+    /// The exit code: 2 for what was refused before the simulator started (a bad option or
+    /// file, a bus that cannot be opened: nothing ran), 1 for a failure while it ran.
+    fn exit_code(&self) -> u8 {
+        match self {
+            CliError::Panicked | CliError::Run(_) => 1,
+            _ => 2,
+        }
+    }
 }
 
 fn open_bus(name: &str) -> Result<Box<dyn CanBus>, CliError> {
@@ -231,7 +247,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
         .enable_all()
         .build()
         .map_err(CliError::Runtime)?;
-    let (mut term, mut int) = {
+    let (mut term, mut int, mut hup, mut quit) = {
         use tokio::signal::unix::{signal, SignalKind};
         let _in_runtime = rt.enter();
         let term = signal(SignalKind::terminate())
@@ -240,7 +256,14 @@ fn run(cli: Cli) -> Result<(), CliError> {
         let int = signal(SignalKind::interrupt())
             .map_err(|e| say!("rollbase-sim: cannot listen for Ctrl-C ({e})"))
             .ok();
-        (term, int)
+        // A closed terminal or ssh session (SIGHUP) and Ctrl-\ (SIGQUIT) stop it cleanly too.
+        let hup = signal(SignalKind::hangup())
+            .map_err(|e| say!("rollbase-sim: cannot listen for SIGHUP ({e})"))
+            .ok();
+        let quit = signal(SignalKind::quit())
+            .map_err(|e| say!("rollbase-sim: cannot listen for SIGQUIT ({e})"))
+            .ok();
+        (term, int, hup, quit)
     };
     match platform.protocol {
         rollbase_control::Protocol::Native => say!(
@@ -280,6 +303,14 @@ fn run(cli: Cli) -> Result<(), CliError> {
                     say!("rollbase-sim: Ctrl-C: stopping");
                     break;
                 }
+                Some(()) = async { hup.as_mut()?.recv().await } => {
+                    say!("rollbase-sim: SIGHUP: stopping");
+                    break;
+                }
+                Some(()) = async { quit.as_mut()?.recv().await } => {
+                    say!("rollbase-sim: SIGQUIT: stopping");
+                    break;
+                }
                 _ = tokio::time::sleep(Duration::from_millis(50)) => {
                     if handle.is_finished() {
                         break;
@@ -290,7 +321,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
     });
     stop.store(true, Ordering::Relaxed);
     let (sim, result) = handle.join().map_err(|_| CliError::Panicked)?;
-    let summary = result?;
+    let summary = result.map_err(CliError::Run)?;
     let st = sim.stats();
     let truth = sim.truth();
     say!(
@@ -357,13 +388,16 @@ fn main() -> ExitCode {
     // SAFETY: setting a signal's disposition to SIG_IGN before any thread is started.
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_IGN);
+        // SIGUSR1/SIGUSR2 mean nothing here; their default action would kill it unsummarised.
+        libc::signal(libc::SIGUSR1, libc::SIG_IGN);
+        libc::signal(libc::SIGUSR2, libc::SIG_IGN);
     }
     let cli = Cli::parse();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             say!("rollbase-sim: error: {e}");
-            ExitCode::FAILURE
+            ExitCode::from(e.exit_code())
         }
     }
 }

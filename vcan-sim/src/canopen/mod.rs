@@ -8,5 +8,7 @@
 
 pub mod device;
 pub mod od;
+pub mod twin;
 
 pub use device::{App, Device, DeviceNmt, DeviceStats};
+pub use twin::{SteerAxis, TwinConfig};

@@ -123,6 +123,19 @@ impl Dictionary {
         }
     }
 
+    /// Changes an existing entry's default (its value after power-on and resets) and its
+    /// value; missing entries are ignored.
+    pub fn set_default(&mut self, index: u16, sub: u8, v: u32) {
+        if let Ok(i) = self
+            .entries
+            .binary_search_by_key(&(index, sub), |(k, _)| *k)
+        {
+            let e = &mut self.entries[i].1;
+            e.default = truncate(v, e.size);
+            e.value = e.default;
+        }
+    }
+
     /// Values back to their defaults for every index in `range`.
     pub fn reset(&mut self, range: std::ops::RangeInclusive<u16>) {
         for ((ix, _), e) in &mut self.entries {
