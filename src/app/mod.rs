@@ -3,7 +3,9 @@
 //! One module per job: [`trajectory`] (`demo`, `run`: follow a trajectory), [`service`]
 //! (`drive` and the live-command demo: the base service), [`teleop`] (the keyboard as a
 //! command source), [`monitor`] (decode frames), [`sinks`] (where a run's records go:
-//! summary, recording, candump).
+//! summary, recording, candump), [`common`] (what they share: errors, the run options,
+//! loading the platform, signals, readiness). This file only parses and dispatches; the job
+//! modules depend on `common`, never on this file, and on each other without a circle.
 //!
 //! Output never kills a run: SIGPIPE is ignored (`main`), and every write to stdout or stderr
 //! goes through [`outln!`] / [`errln!`], which drop what a closed pipe cannot take.
@@ -37,6 +39,7 @@ macro_rules! err {
     }};
 }
 
+mod common;
 mod monitor;
 mod ros2cmd;
 mod rt;
@@ -52,68 +55,12 @@ use service::DriveArgs;
 pub(crate) use sinks::exit;
 use trajectory::{DemoArgs, RunArgs};
 
-use clap::{Args, Parser, Subcommand};
-use rollbase_control::runtime::scenario::{self, Scenario};
-use rollbase_control::runtime::RuntimeConfig;
-use rollbase_control::{Platform, Protocol};
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+pub use common::CliError;
+use common::{load_platform, load_platform_profile};
 
-/// Errors of the command line.
-#[derive(Debug, thiserror::Error)]
-pub enum CliError {
-    /// Bad platform file.
-    #[error(transparent)]
-    Config(#[from] rollbase_control::ConfigError),
-    /// Bad scenario or trajectory.
-    #[error(transparent)]
-    Scenario(#[from] scenario::ScenarioError),
-    /// Runtime could not start.
-    #[error(transparent)]
-    Runtime(#[from] rollbase_control::runtime::RuntimeError),
-    /// Bus could not be opened or failed.
-    #[error(transparent)]
-    Bus(#[from] rollbase_driver::bus::BusError),
-    /// Simulator setup failed.
-    #[error(transparent)]
-    Sim(#[from] rollbase_vcan_sim::SimError),
-    /// Recording failed.
-    #[error(transparent)]
-    Record(#[from] rollbase::record::RecordError),
-    /// Plotting failed.
-    #[error(transparent)]
-    Plot(#[from] rollbase::plot::PlotError),
-    /// The ROS 2 node could not start.
-    #[error(transparent)]
-    Ros2(#[from] rollbase::ros2::Ros2Error),
-    /// A capture file could not be read.
-    #[error("{path}: {message}")]
-    File {
-        /// File.
-        path: String,
-        /// What went wrong.
-        message: String,
-    },
-    /// The socketcand bridge failed.
-    #[error(transparent)]
-    Bridge(#[from] crate::bridge::BridgeError),
-    /// An argument value is not acceptable.
-    #[error("{0}")]
-    Usage(String),
-    /// A command file or line is not acceptable.
-    #[error(transparent)]
-    Commands(#[from] rollbase::commands::CommandFileError),
-    /// Writing the recording or the candump log failed during the run.
-    #[error("recording {path} failed during the run (the run was stopped; what was recorded up to then is kept)")]
-    Recording {
-        /// The output.
-        path: String,
-        /// Why.
-        #[source]
-        source: Box<CliError>,
-    },
-}
+use clap::{Args, Parser, Subcommand};
+use rollbase_control::{Platform, Protocol};
+use std::path::PathBuf;
 
 /// rollbase: CAN driver and 250 Hz control stack for omnidirectional platforms with steered
 /// wheels on movable legs.
@@ -188,36 +135,6 @@ enum ConfigCmd {
     },
 }
 
-#[derive(Args, Debug, Clone)]
-pub(crate) struct CommonRun {
-    /// Platform file (TOML); default: the built-in Justin-like platform.
-    #[arg(long)]
-    pub(crate) config: Option<PathBuf>,
-    /// Tracking controller: dfl (seed 000) or kinematic; default: the scenario's (seed000: dfl,
-    /// seed001: kinematic) or dfl for a waypoint file.
-    #[arg(long)]
-    pub(crate) controller: Option<String>,
-    /// Singularity avoidance: on, off, locked (legs locked) or the scenario's default.
-    #[arg(long)]
-    pub(crate) avoidance: Option<String>,
-    /// Write an MCAP recording of the run.
-    #[arg(long)]
-    pub(crate) record: Option<PathBuf>,
-    /// Write every frame on the bus to a candump -L log.
-    #[arg(long)]
-    pub(crate) candump: Option<PathBuf>,
-    /// Write PNG plots of the run into this directory (implies a recording).
-    #[arg(long)]
-    pub(crate) plots: Option<PathBuf>,
-    /// Print one JSON object with the run's summary instead of the table.
-    #[arg(long)]
-    pub(crate) json: bool,
-    /// Wire profile: native (rollbase wheel modules) or cia402 (CANopen CiA 402 drives and
-    /// CiA 406 leg encoders); default: the platform file's `protocol`.
-    #[arg(long)]
-    pub(crate) profile: Option<Protocol>,
-}
-
 #[derive(Args, Debug)]
 struct UrdfArgs {
     /// Platform file (TOML); default: the built-in Justin-like platform.
@@ -254,6 +171,7 @@ struct BusLoadArgs {
 /// Runs a command; returns the process exit code.
 pub fn run(cli: Cli) -> Result<i32, CliError> {
     match cli.command {
+        Command::Demo(a) if a.is_live() => service::demo_live(a),
         Command::Demo(a) => trajectory::demo(a),
         Command::Run(a) => trajectory::run_bus(a),
         Command::Drive(a) => service::drive(a),
@@ -381,140 +299,4 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
             }
         },
     }
-}
-
-pub(crate) fn load_platform(path: Option<&Path>) -> Result<Platform, CliError> {
-    Ok(match path {
-        Some(p) => Platform::load(p)?,
-        None => Platform::justin(),
-    })
-}
-
-/// The platform file (or the default platform) with the wire profile overridden when
-/// `profile` is given, validated again (the `[cia402]` section must fit the platform).
-pub(crate) fn load_platform_as(
-    path: Option<&Path>,
-    profile: Option<Protocol>,
-) -> Result<Platform, CliError> {
-    let p = load_platform_profile(path, profile)?;
-    if p.buses() > 1 {
-        // Two buses would share the one `--bus` medium (two SYNCs a cycle): refused.
-        return Err(CliError::Usage(format!(
-            "platform `{}` puts wheels on bus 1: running two buses (one `--bus` each) is not implemented yet; put every wheel on `bus = 0` (`rollbase bus-load --config` tells whether they fit)",
-            p.name
-        )));
-    }
-    Ok(p)
-}
-
-/// [`load_platform_as`] for the commands that only read the platform (bus-load): a platform
-/// on two buses is fine there.
-fn load_platform_profile(
-    path: Option<&Path>,
-    profile: Option<Protocol>,
-) -> Result<Platform, CliError> {
-    let mut p = load_platform(path)?;
-    if let Some(pr) = profile {
-        p.protocol = pr;
-        p.validate()?;
-    }
-    Ok(p)
-}
-
-pub(crate) fn runtime_config(
-    common: &CommonRun,
-    sc: Option<Scenario>,
-) -> Result<RuntimeConfig, CliError> {
-    let mut cfg = match sc {
-        Some(s) => scenario::runtime_config(s),
-        None => RuntimeConfig::default(),
-    };
-    if let Some(c) = &common.controller {
-        cfg.controller = c.parse().map_err(CliError::Usage)?;
-    }
-    if let Some(a) = &common.avoidance {
-        cfg.avoidance = scenario::avoidance_mode(a).map_err(CliError::Usage)?;
-    }
-    Ok(cfg)
-}
-
-pub(crate) fn unix_now() -> f64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_secs_f64())
-        .unwrap_or(0.0)
-}
-
-/// What a signal asks of the process.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum SignalAction {
-    /// Move something: a controlled stop of the platform, then exit.
-    ControlledStop,
-    /// Move nothing (monitor, tools): just end.
-    End,
-}
-
-/// Every signal a terminal or a service manager sends to end a process — SIGINT (Ctrl-C),
-/// SIGTERM (systemd, `kill`), SIGHUP (the terminal or the ssh session closed) and SIGQUIT
-/// (`Ctrl-\`) — sets `stop`, once; the run then stops in a controlled way and finishes its
-/// outputs. A second signal is reported and otherwise ignored (a stop in progress is not cut
-/// short). SIGUSR1 and SIGUSR2 are ignored from the start (`main`). Returns a flag that tells
-/// whether a signal came.
-pub(crate) fn install_signals(stop: Arc<AtomicBool>, action: SignalAction) -> Arc<AtomicBool> {
-    let came = Arc::new(AtomicBool::new(false));
-    let came2 = came.clone();
-    // The handlers are installed here, before this returns (a signal that comes right after
-    // must find them); a thread then waits for them.
-    let Ok(rt) = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-    else {
-        tracing::error!(
-            "cannot start the signal handler; Ctrl-C, SIGTERM, SIGHUP and SIGQUIT end the process at once"
-        );
-        return came;
-    };
-    let signals = {
-        use tokio::signal::unix::{signal, SignalKind};
-        let _in_runtime = rt.enter();
-        (
-            signal(SignalKind::interrupt()),
-            signal(SignalKind::terminate()),
-            signal(SignalKind::hangup()),
-            signal(SignalKind::quit()),
-        )
-    };
-    let (Ok(mut int), Ok(mut term), Ok(mut hup), Ok(mut quit)) = signals else {
-        tracing::error!("cannot listen for SIGINT/SIGTERM/SIGHUP/SIGQUIT");
-        return came;
-    };
-    std::thread::spawn(move || {
-        rt.block_on(async {
-            let mut first = true;
-            loop {
-                let name = tokio::select! {
-                    _ = int.recv() => "SIGINT",
-                    _ = term.recv() => "SIGTERM",
-                    _ = hup.recv() => "SIGHUP",
-                    _ = quit.recv() => "SIGQUIT",
-                };
-                if first {
-                    match action {
-                        SignalAction::ControlledStop => tracing::warn!(
-                            "{name}: controlled stop (the platform decelerates within its limits, steering held), then exit"
-                        ),
-                        SignalAction::End => tracing::info!(
-                            "{name}: ending (this command only listens: nothing on the bus is driven or stopped by it)"
-                        ),
-                    }
-                    came2.store(true, Ordering::SeqCst);
-                    stop.store(true, Ordering::SeqCst);
-                    first = false;
-                } else if action == SignalAction::ControlledStop {
-                    tracing::warn!("{name} again: the controlled stop is already under way");
-                }
-            }
-        });
-    });
-    came
 }

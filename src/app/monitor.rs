@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::{install_signals, load_platform_as, CliError, SignalAction};
+use super::common::{install_signals, load_platform_as, CliError, SignalAction};
 
 #[derive(Args, Debug)]
 pub(crate) struct MonitorArgs {

@@ -14,7 +14,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use super::{unix_now, CliError};
+use super::common::{unix_now, CliError};
 
 #[derive(Args, Debug)]
 pub(crate) struct RecoverArgs {

@@ -14,8 +14,8 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TryRecvError};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use super::common::CliError;
 use super::sinks::Sinks;
-use super::CliError;
 
 /// Records queued between the cycle thread and the recorder (about 8 s at 250 Hz).
 pub(crate) const RECORD_QUEUE: usize = 2048;

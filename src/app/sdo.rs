@@ -11,7 +11,7 @@
 //! when no type is given). A master running on the bus (its SYNC seen within 100 ms) refuses
 //! the command: stop `rollbase drive` first (its drives would see a second SDO client).
 
-use super::CliError;
+use super::common::CliError;
 use clap::{Args, Subcommand, ValueEnum};
 use rollbase_driver::bus::{self, CanBus};
 use rollbase_driver::canopen::sdo::AbortCode;

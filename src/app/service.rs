@@ -15,7 +15,7 @@
 
 use clap::Args;
 use rollbase::commands::{self, TimedCommand};
-use rollbase::ros2::{spawn_node, Ros2Args, Ros2Options};
+use rollbase::ros2::{spawn_node, Ros2Options};
 use rollbase_control::runtime::command_channel::{command_channel, MOTION_QUEUE, PRIORITY_LANE};
 use rollbase_control::runtime::record::CycleRecord;
 use rollbase_control::runtime::{CommandSender, CycleCore, RuntimeConfig};
@@ -32,52 +32,18 @@ use std::sync::mpsc::TrySendError;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use super::common::{
+    install_signals, load_platform_as, runtime_config, unix_now, CliError, CommonRun, SignalAction,
+};
+use super::common::{Ready, Ros2Run, StateConsumer};
 use super::rt::{poll_recv, print_report, run_cycle, wall_bus, Ports, SimThread};
 use super::sinks::{OutputPlan, Sinks};
 use super::trajectory::{finish, run_demo_lockstep, DemoArgs};
-use super::{
-    install_signals, load_platform_as, runtime_config, unix_now, CliError, CommonRun, SignalAction,
-};
-
-/// A consumer of the state port (on the state thread).
-pub(crate) type StateConsumer = Box<dyn FnMut(&BaseState) + Send>;
 
 /// State-port values queued toward the consumers (at 250 Hz: a quarter of a second).
 const STATE_QUEUE: usize = 64;
 /// States queued toward the ROS 2 node (it publishes at ≤ 50 Hz and keeps only the latest).
 const NODE_STATE_QUEUE: usize = 16;
-
-/// `--ros2` and the node's options, on `drive` and `demo`.
-#[derive(Args, Clone, Debug, Default)]
-pub(crate) struct Ros2Run {
-    /// Be a ROS 2 node (over DDS; no ROS installation needed): take `cmd_vel` and leg
-    /// commands, publish odom, tf, joint_states, diagnostics and the supervisor state, serve
-    /// ~/stop and ~/rearm. See README "ROS 2". Honours ROS_DOMAIN_ID.
-    #[arg(long)]
-    pub(crate) ros2: bool,
-    #[command(flatten)]
-    pub(crate) node: Ros2Args,
-}
-
-impl Ros2Run {
-    /// The node's options with `--ros2` (checked against the platform's `wheels`), `None`
-    /// without it; `--ros2-*` options without `--ros2` are refused rather than ignored.
-    pub(crate) fn options(&self, wheels: usize) -> Result<Option<Ros2Options>, CliError> {
-        if !self.ros2 {
-            if self.node != Ros2Args::default() {
-                return Err(CliError::Usage(
-                    "--ros2-* options need --ros2 (they configure the ROS 2 node)".into(),
-                ));
-            }
-            return Ok(None);
-        }
-        let opts = self.node.to_options();
-        opts.validate(Some(wheels))?;
-        // The domain comes from ROS_DOMAIN_ID when not given: check it now, not after boot.
-        opts.resolve_domain_id()?;
-        Ok(Some(opts))
-    }
-}
 
 #[derive(Args, Debug)]
 pub(crate) struct DriveArgs {
@@ -114,34 +80,6 @@ impl Source {
             Some(p) if p.as_os_str() == "-" => Source::Stdin,
             Some(p) => Source::File(commands::load_file(p)?),
         })
-    }
-}
-
-/// When the driver became ready (first followed commands), shared with the sources.
-#[derive(Default)]
-pub(crate) struct Ready {
-    at: Mutex<Option<Instant>>,
-}
-
-impl Ready {
-    fn set(&self) {
-        if let Ok(mut g) = self.at.lock() {
-            g.get_or_insert_with(Instant::now);
-        }
-    }
-    /// Waits until ready or `stop`; returns the instant.
-    pub(crate) fn wait(&self, stop: &AtomicBool) -> Option<Instant> {
-        loop {
-            if stop.load(Ordering::SeqCst) {
-                return None;
-            }
-            if let Ok(g) = self.at.lock() {
-                if let Some(t) = *g {
-                    return Some(t);
-                }
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        }
     }
 }
 

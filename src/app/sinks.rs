@@ -29,7 +29,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use super::{CliError, CommonRun};
+use super::common::{CliError, CommonRun};
 
 /// The output files of a run, checked before anything starts.
 #[derive(Clone, Debug, Default)]

@@ -35,8 +35,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use super::service::Ready;
-use super::CliError;
+use super::common::CliError;
+use super::common::{Ready, StateConsumer};
 
 /// How long a key's motion lasts after the key was last seen (s): longer than a terminal's
 /// auto-repeat delay, so a held key moves smoothly.
@@ -328,7 +328,7 @@ impl Drop for StatusLine {
 
 /// The live status line of teleop (stderr, about 5 times a second): pose, speeds, state and
 /// what limits the motion.
-pub(crate) fn status_line() -> super::service::StateConsumer {
+pub(crate) fn status_line() -> StateConsumer {
     let mut last = Instant::now();
     let line = StatusLine;
     Box::new(move |s: &BaseState| {

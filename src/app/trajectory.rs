@@ -13,11 +13,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::rt::{print_report, run_cycle, wall_bus, Ports, SimThread};
-use super::sinks::{exit_code, print_summary, Ending, OutputPlan, Sinks};
-use super::{
+use super::common::{
     install_signals, load_platform_as, runtime_config, unix_now, CliError, CommonRun, SignalAction,
 };
+use super::rt::{print_report, run_cycle, wall_bus, Ports, SimThread};
+use super::sinks::{exit_code, print_summary, Ending, OutputPlan, Sinks};
 
 #[derive(Args, Debug)]
 pub(crate) struct DemoArgs {
@@ -51,7 +51,7 @@ pub(crate) struct DemoArgs {
     /// ROS 2: with `--ros2` the simulated platform runs in real time, starting at rest, and
     /// takes its motion commands from `cmd_vel` until Ctrl-C or SIGTERM.
     #[command(flatten)]
-    pub(crate) ros2: super::service::Ros2Run,
+    pub(crate) ros2: super::common::Ros2Run,
     #[command(flatten)]
     pub(crate) common: CommonRun,
 }
@@ -72,10 +72,16 @@ pub(crate) struct RunArgs {
     pub(crate) common: CommonRun,
 }
 
-pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
-    if a.commands.is_some() || a.teleop || a.ros2.ros2 {
-        return super::service::demo_live(a);
+impl DemoArgs {
+    /// Live commands (a file, the keyboard or ROS 2) rather than a trajectory: the base
+    /// service runs it (`service::demo_live`).
+    pub(crate) fn is_live(&self) -> bool {
+        self.commands.is_some() || self.teleop || self.ros2.ros2
     }
+}
+
+/// A demo that follows a trajectory (the live ones are `service::demo_live`).
+pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
     // Everything is validated before anything is created or started.
     let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
     a.ros2.options(platform.n())?; // refuses --ros2-* options without --ros2
