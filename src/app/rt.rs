@@ -164,9 +164,10 @@ pub(crate) fn print_report(report: &RealtimeReport, quiet: bool) {
         errln!("runtime: {line}");
     }
     errln!(
-        "runtime: {} cycles, {} deadline misses, {} records dropped, {} bus errors",
+        "runtime: {} cycles, {} deadline misses, {} cycles skipped, {} records dropped, {} bus errors",
         report.cycles,
         report.deadline_misses,
+        report.skipped_cycles,
         report.records_dropped,
         report.bus_errors
     );

@@ -146,7 +146,10 @@
 //! profile ([`crate::reference::trajectory::QuasiTrapezoid`], continuous acceleration) of the farthest
 //! leg, the other legs moving in proportion so that all arrive together; its speed is kept
 //! where no wheel exceeds its speed share with the twist goal of the moment, and its
-//! acceleration is small (`leg_accel`, reserved out of the wheels' acceleration share). New
+//! acceleration is small (`leg_accel`, reserved out of the wheels' acceleration share) and,
+//! while the platform rolls, smaller still where the legs' acceleration and jerk would turn
+//! a rolling wheel beyond its steering shares (a leg's rate is part of its wheel's contact
+//! velocity: `leg_accel_cap`; a braked move lasts long enough for the same). New
 //! targets during a move are taken when it ends (a leg never overshoots its target, so
 //! never its range); a halt brakes the move within the same acceleration.
 //!
@@ -1012,8 +1015,8 @@ impl Shaper {
                 }
                 let speed = self.leg_speed_cap(tw, &ratio);
                 if speed > 1e-6 {
-                    if let Ok(prof) = QuasiTrapezoid::new(0.0, dmax, speed, self.cfg.leg_accel, 0.0)
-                    {
+                    let accel = self.leg_accel_cap(tw, &ratio, speed);
+                    if let Ok(prof) = QuasiTrapezoid::new(0.0, dmax, speed, accel, 0.0) {
                         self.legs_move = LegMove::Move {
                             from: self.legs,
                             ratio,
@@ -1080,16 +1083,93 @@ impl Shaper {
     fn brake_legs(&mut self) {
         if let LegMove::Move { from, ratio, .. } = self.legs_move {
             let (p, v, a) = self.leg_state;
-            let duration = (1.5 * v.abs() / self.cfg.leg_accel).max(self.dt);
-            let end = p + 0.5 * v * duration;
+            // Long enough for every rolling wheel's steering too (`leg_steer_gain`): the
+            // quintic's acceleration turns the wheels at L·λ̈ and its jerk at L·λ⃛.
+            let tw = [self.qd[0], self.qd[1], self.qd[2]];
+            let gain = self.leg_steer_gain(&tw, &ratio, v.abs());
+            let (sr, sa) = (
+                self.cfg.speed_fraction * self.limits.steer_rate,
+                self.cfg.accel_fraction * self.limits.steer_accel,
+            );
+            let mut duration = (1.5 * v.abs() / self.cfg.leg_accel).max(self.dt);
+            let mut coef;
+            let mut tries = 0;
+            loop {
+                let end = p + 0.5 * v * duration;
+                coef = crate::reference::trajectory::quintic(p, v, a, end, 0.0, 0.0, duration);
+                let (mut amax, mut jmax) = (0.0f64, 0.0f64);
+                for k in 0..=32 {
+                    let (_, _, ak, jk) = crate::reference::trajectory::eval_quintic(
+                        &coef,
+                        duration * k as f64 / 32.0,
+                    );
+                    amax = amax.max(ak.abs());
+                    jmax = jmax.max(jk.abs());
+                }
+                // The rate's share is what the legs' own acceleration already used at the
+                // brake (|a| at its start), so only its growth is bounded.
+                let fits = gain * jmax <= sa && gain * (amax - a.abs()).max(0.0) <= sr;
+                if fits || tries >= 24 {
+                    break;
+                }
+                duration *= 1.25;
+                tries += 1;
+            }
             self.legs_move = LegMove::Brake {
                 from,
                 ratio,
-                coef: crate::reference::trajectory::quintic(p, v, a, end, 0.0, 0.0, duration),
+                coef,
                 t: 0.0,
                 duration,
             };
         }
+    }
+
+    /// The largest |u × u_λ|/|u|² over the rolling wheels (1/m): the steering rate (rad/s)
+    /// per unit of leg acceleration (m/s²) of the farthest leg — and the steering
+    /// acceleration per unit of leg jerk — while the twist `tw` is held and the legs move
+    /// with `ratio` at speeds up to `speed`. With the twist constant, a wheel's contact
+    /// velocity is u = G_i tw + λ̇ e_i (e_i = ratio_i·(cos α_i, sin α_i)), so u̇ = λ̈ e_i and
+    /// its direction turns at φ̇ = λ̈ (u × e_i)/|u|²; (u × e_i) = (G_i tw × e_i) does not
+    /// depend on λ̇, |u| does (taken at rest, half and full leg speed).
+    fn leg_steer_gain(&self, tw: &[f64; 3], ratio: &[f64; MAX_WHEELS], speed: f64) -> f64 {
+        let mut gain = 0.0f64;
+        for i in 0..self.n {
+            if !self.rolling[i] {
+                continue;
+            }
+            let a = self.contact_tw(i, tw);
+            let e = [ratio[i] * self.ca[i], ratio[i] * self.sa[i]];
+            let c = cross(a, e).abs();
+            if c == 0.0 {
+                continue;
+            }
+            for f in [0.0, 0.5, 1.0] {
+                let u = [a[0] + f * speed * e[0], a[1] + f * speed * e[1]];
+                let un = norm(u).max(TURN_SPEED);
+                gain = gain.max(c / (un * un));
+            }
+        }
+        gain
+    }
+
+    /// The leg acceleration of a move at cruise speed `speed` (module docs, "Legs"):
+    /// `leg_accel`, or less where the platform rolls, so that the rolling wheels' steering
+    /// stays within its shares: the profile's acceleration turns them at L·A ≤ φ̇_s/2 and
+    /// its blends' largest jerk, 6Δv/T_b² = (8/3)·A²/Δv with T_b = 1.5·Δv/A (seed 000's
+    /// blend rule, [`crate::reference::trajectory`]), at L·(8/3)·A²/speed ≤ φ̈_s.
+    fn leg_accel_cap(&self, tw: &[f64; 3], ratio: &[f64; MAX_WHEELS], speed: f64) -> f64 {
+        let gain = self.leg_steer_gain(tw, ratio, speed);
+        let mut a = self.cfg.leg_accel;
+        if gain > 0.0 {
+            let (sr, sa) = (
+                self.cfg.speed_fraction * self.limits.steer_rate,
+                self.cfg.accel_fraction * self.limits.steer_accel,
+            );
+            a = a.min(0.5 * sr / gain);
+            a = a.min((sa * speed / (gain * 8.0 / 3.0)).sqrt());
+        }
+        a.max(1e-3)
     }
 
     /// Turning wheels: their targets from the goal `g`, and the goal scaled so that no

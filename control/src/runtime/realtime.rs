@@ -35,8 +35,12 @@ impl Default for RealtimeOptions {
 pub struct RealtimeReport {
     /// Cycles run.
     pub cycles: u64,
-    /// Cycles whose control step finished after the next cycle's deadline.
+    /// Cycles whose control step finished after the next cycle's deadline (each such
+    /// cycle's record has `timing.deadline_miss` set).
     pub deadline_misses: u64,
+    /// Cycles never run because the loop fell behind by more than a period (it
+    /// resynchronises instead of bursting to catch up; they have no record).
+    pub skipped_cycles: u64,
     /// Records dropped because the recorder channel was full.
     pub records_dropped: u64,
     /// State-port values dropped because their channel was full.
@@ -328,7 +332,7 @@ pub fn run_realtime_io(
         let now = ts_ns(&monotonic_now());
         if now > deadline + period_ns {
             let behind = (now - deadline) / period_ns;
-            report.deadline_misses += behind as u64;
+            report.skipped_cycles += behind as u64;
             deadline += behind * period_ns;
         }
     }
