@@ -10,7 +10,7 @@ writes them, expedited and segmented.
 These devices found two master bugs the emulator could not show (a heartbeat in flight when
 the NMT start went out latched "left operational" and hung the arm; a device fault while the
 arm waited was never reported): both fixed, see driver/src/canopen/master.rs and
-control/src/link.rs."""
+control/src/runtime/link.rs."""
 
 import json
 import math

@@ -8,7 +8,7 @@ decode message for message.
 
 Every tolerance and time bound is derived from the platform file the demo runs with (`rollbase
 config default`, passed with --config) and the shaper's documented defaults (ShaperConfig in
-control/src/shaper.rs); the reasoning is next to each constant. Times are compared on the
+control/src/reference/shaper.rs); the reasoning is next to each constant. Times are compared on the
 demo's cycle clock (the header stamps), never on this process's wall clock.
 
 DDS discovery multicasts: these tests run only inside a private network namespace whose only
@@ -79,7 +79,7 @@ if only_loopback():
 # The platform and the shaper: where every bound below comes from
 # ---------------------------------------------------------------------------------------------
 
-# The shaper's defaults (control/src/shaper.rs, ShaperConfig::default): transitions use
+# The shaper's defaults (control/src/reference/shaper.rs, ShaperConfig::default): transitions use
 # accel_fraction of the wheel acceleration limit with the acceleration built up over
 # jerk_time; a halt (command timeout, ~/stop) decelerates at stop_accel_fraction of it with
 # stop_jerk_time; speeds stay within speed_fraction of the limits.
@@ -96,7 +96,7 @@ CMD_RATE_HZ = 20.0  # a teleop/Nav2-like publisher
 # odometry twist can differ from the command by:
 # - the odometry's noise: the simulator's wheel-speed noise (σ 2e-3 rad/s, r = 0.085 m) and
 #   its 1e-3 rad/s resolution give about 0.1 mm/s per component after the least-squares fit
-#   of 8 equations in 3 unknowns (control/src/odometry.rs); 5σ < 1 mm/s;
+#   of 8 equations in 3 unknowns (control/src/estimation/odometry.rs); 5σ < 1 mm/s;
 # - the drives' lag: the cycle adds τ·(reference acceleration), so at constant speed there is
 #   none;
 # - the tracking controller correcting the error the ramp left (the run's
@@ -128,7 +128,7 @@ def platform_file(tmp: Path) -> tuple[Path, dict]:
 
 
 def contact_velocity(p, i, vx, vy, w, lam, lam_rate=0.0):
-    """Wheel i's contact velocity in the base frame (seed 000 eq. 18; control/src/shaper.rs
+    """Wheel i's contact velocity in the base frame (seed 000 eq. 18; control/src/reference/shaper.rs
     module docs): u = (vx − ω λ sin α + λ̇ cos α, vy + ω λ cos α + λ̇ sin α)."""
     a = p["wheels"][i]["alpha"]
     return (vx - w * lam * math.sin(a) + lam_rate * math.cos(a),
@@ -144,14 +144,14 @@ def ramp_time(p, cmd):
     """From rest to `cmd` (after the wheels have aligned): the shaper's straight line in q̇ with
     the fastest wheel's contact acceleration at accel_fraction·r·ω̇_max, built up and taken
     down over jerk_time: max|u_i| / a + jerk_time (the time-optimal trapezoid in the line
-    parameter, control/src/ramp.rs)."""
+    parameter, control/src/reference/ramp.rs)."""
     a = ACCEL_FRACTION * p["wheel_radius"] * p["limits"]["wheel_accel"]
     return fastest_contact(p, cmd) / a + JERK_TIME
 
 
 def stop_time(p, cmd):
     """A halt from `cmd`: every wheel keeps its direction and the fastest decelerates at
-    stop_accel_fraction·r·ω̇_max (control/src/shaper.rs, "Halt"): max|u_i| / a plus the jerk
+    stop_accel_fraction·r·ω̇_max (control/src/reference/shaper.rs, "Halt"): max|u_i| / a plus the jerk
     ramp."""
     a = STOP_ACCEL_FRACTION * p["wheel_radius"] * p["limits"]["wheel_accel"]
     return fastest_contact(p, cmd) / a + STOP_JERK_TIME
@@ -714,7 +714,7 @@ def test_stop_and_rearm_services(live):
 
 # Legs. Leg targets are positions; the shaper moves the legs at a common speed within
 # SPEED_FRACTION of the leg speed limit so that they arrive together, and its reference never
-# passes a target (control/src/shaper.rs, "Legs"). A leg is moved by its wheel rolling along it,
+# passes a target (control/src/reference/shaper.rs, "Legs"). A leg is moved by its wheel rolling along it,
 # so the measured leg lags its reference by the drive's time constant τ (20 ms): a leg braking
 # from v ≤ SPEED_FRACTION·leg_speed can run past the target by at most v·τ (4.5 mm; measured
 # about 1 mm). The tracking controller then pulls it back at kin_k_leg = 2 1/s: LEG_SETTLE s
