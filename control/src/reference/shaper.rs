@@ -151,7 +151,10 @@
 //! a rolling wheel beyond its steering shares (a leg's rate is part of its wheel's contact
 //! velocity: `leg_accel_cap`; a braked move lasts long enough for the same). New
 //! targets during a move are taken when it ends (a leg never overshoots its target, so
-//! never its range); a halt brakes the move within the same acceleration.
+//! never its range); a halt brakes the move within the same acceleration. A command of rest
+//! during a leg move stops the twist and brakes the legs over the same time, so every
+//! contact velocity shrinks roughly in proportion and keeps its direction; any other large
+//! change of the twist waits for the legs' brake.
 //!
 //! # Singularity avoidance (when the runtime runs with it)
 //!
@@ -1081,6 +1084,17 @@ impl Shaper {
     /// quintic from the state now to rest, lasting 1.5 v/a like the profile's own blends),
     /// short of the target (the profile's own braking would take longer).
     fn brake_legs(&mut self) {
+        self.brake_legs_within(None);
+    }
+
+    /// Brakes a running leg move over `duration` at least (the legs' own acceleration may
+    /// need longer), without the steering allowance of [`Shaper::brake_legs`]: for a stop
+    /// of the twist over the same time, which keeps the wheels' directions.
+    fn brake_legs_over(&mut self, duration: f64) {
+        self.brake_legs_within(Some(duration));
+    }
+
+    fn brake_legs_within(&mut self, together: Option<f64>) {
         if let LegMove::Move { from, ratio, .. } = self.legs_move {
             let (p, v, a) = self.leg_state;
             // Long enough for every rolling wheel's steering too (`leg_steer_gain`): the
@@ -1091,9 +1105,11 @@ impl Shaper {
                 self.cfg.speed_fraction * self.limits.steer_rate,
                 self.cfg.accel_fraction * self.limits.steer_accel,
             );
-            let mut duration = (1.5 * v.abs() / self.cfg.leg_accel).max(self.dt);
+            let mut duration = (1.5 * v.abs() / self.cfg.leg_accel)
+                .max(together.unwrap_or(0.0))
+                .max(self.dt);
             let mut coef;
-            let mut tries = 0;
+            let mut tries = if together.is_some() { 24 } else { 0 };
             loop {
                 let end = p + 0.5 * v * duration;
                 coef = crate::reference::trajectory::quintic(p, v, a, end, 0.0, 0.0, duration);
@@ -1633,7 +1649,18 @@ impl Shaper {
                 ];
                 let far = (0..self.n)
                     .any(|i| norm(self.contact_tw(i, &d)) > self.band.max(LEG_WAIT_SPEED));
-                if far {
+                if goal.iter().all(|v| *v == 0.0) {
+                    // Rest: the twist and the legs stop together over the same time, so
+                    // every contact velocity (twist part + leg part) shrinks roughly in
+                    // proportion and keeps its direction (seed 004: the direction is kept,
+                    // only the speed changes) — no wheel re-steers for the stop.
+                    self.plan_next(goal);
+                    let d = match &self.phase {
+                        Phase::Line { ramp, .. } => ramp.duration(),
+                        Phase::Cruise => 0.0,
+                    };
+                    self.brake_legs_over(d);
+                } else if far {
                     self.brake_legs();
                 }
             }
