@@ -1006,7 +1006,6 @@ impl CommandSide {
         drop(cmd_vel);
         drop(legs);
         drop(announcements);
-        drop(status_s);
         drop(listener);
         drop(dds);
     }
