@@ -1,10 +1,12 @@
 """The ROS 2 node's memory after huge messages (issue 27, finding 8): `rollbase demo --ros2`
 receives leg commands of 4 million entries (32 MB each; the command port refuses them, they
 name 4 million legs) from an independent DDS peer (Cyclone DDS), then a normal stream of leg
-commands. Once the huge samples have left rustdds's topic cache (it keeps the last 64
-samples of a topic; the normal stream replaces them), the process's resident memory must be
-back near where it was: before the fix glibc's malloc kept the freed 32 MB blocks (its
-dynamic mmap threshold), 55.9 → 109 MB for good in the review.
+commands. Once the huge samples have left rustdds's topic cache (the node's leg reader keeps
+the last 10 samples; the normal stream replaces them), the process's resident memory must be
+back near where it was: before the first fix glibc's malloc kept the freed 32 MB blocks (its
+dynamic mmap threshold), 55.9 → 109 MB for good in the review; on the rustdds node before the
+second, rustdds kept a reassembly buffer per huge sample that lost a fragment, +93.9 MB
+(docs/ros2.md, Memory).
 
 DDS discovery multicasts: runs only inside a private network namespace with only loopback
 (.ci/run: `unshare -n sh -c 'ip link set lo up; …'`); skipped elsewhere
@@ -56,8 +58,8 @@ if only_loopback():
 
 HUGE = 4_000_000  # entries (f64): 32 MB, the review's message
 HUGE_COUNT = 3
-# rustdds keeps up to the last 64 samples of a topic (its ResourceLimits default): a normal
-# stream longer than that replaces the huge ones.
+# rustdds keeps up to the last 10 samples of the leg topic (the node's ResourceLimits; its
+# default is 64): a normal stream longer than that replaces the huge ones.
 NORMAL_COUNT = 80
 # What may stay: the node's normal growth over the test (a few hundred kB) and allocator
 # slack. The huge messages were 96 MB; before the fix 14–50 MB of them stayed.

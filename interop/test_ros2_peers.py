@@ -178,20 +178,18 @@ def test_cyclone_and_fast_dds_callers_served_by_one_process():
 
 def test_best_effort_cmd_vel_publishers_drive():
     """A best-effort cmd_vel publisher (Cyclone DDS, and the Fast DDS peer with --best-effort)
-    is matched and its commands arrive; no incompatible-QoS event on the command topics."""
+    is matched and its commands arrive; no incompatible-QoS event on cmd_vel. (leg_commands is
+    read reliably: test_best_effort_leg_publisher_is_reported_incompatible.)"""
     domain = 24
     st = SelfTest("--ros2-domain-id", str(domain))
     try:
         dp = DomainParticipant(domain)
         w = DataWriter(dp, Topic(dp, "rt/cmd_vel", rt.Twist, qos=BEST_EFFORT), qos=BEST_EFFORT)
-        wl = DataWriter(dp, Topic(dp, "rt/leg_commands", rt.Float64MultiArray, qos=BEST_EFFORT), qos=BEST_EFFORT)
-        matched(w, wl)
+        matched(w)
         time.sleep(0.2)
         w.write(rt.Twist(linear=rt.Vector3(x=0.5, y=0.25), angular=rt.Vector3(z=-0.125)))
         got = st.next_json(lambda j: j.get("cmd") == "motion")
         assert (got["vx"], got["vy"], got["omega"]) == (0.5, 0.25, -0.125), got
-        wl.write(rt.Float64MultiArray(data=[0.4, 0.41, 0.42, 0.43]))
-        assert st.next_json(lambda j: j.get("cmd") == "legs")["legs"] == [0.4, 0.41, 0.42, 0.43]
         events = run_fastdds(domain, "--best-effort", "--twist", "0.0625,0,0", "--count", "3", "--calls", "")
         assert [e["event"] for e in events] == ["matched", "odom", "sent", "done"], events
         # Best effort may lose a sample in principle; on loopback none is lost, but one is enough.
@@ -201,6 +199,28 @@ def test_best_effort_cmd_vel_publishers_drive():
         done = st.stop()
     assert done["stats"]["qos_incompatible"] == 0, done
     assert done["stats"]["undecodable"] == {}, done
+
+
+def test_best_effort_leg_publisher_is_reported_incompatible():
+    """leg_commands is read reliably (docs/ros2.md, QoS: a large sample's lost fragments are
+    repaired, issue 27 finding 8): a best-effort leg publisher does not match and the node
+    counts its incompatible QoS; a reliable leg publisher's commands arrive."""
+    domain = 46
+    st = SelfTest("--ros2-domain-id", str(domain))
+    try:
+        dp = DomainParticipant(domain)
+        topic = Topic(dp, "rt/leg_commands", rt.Float64MultiArray, qos=ROS_QOS)
+        be = DataWriter(dp, topic, qos=BEST_EFFORT)
+        rel = DataWriter(dp, topic, qos=ROS_QOS)
+        matched(rel)
+        time.sleep(0.2)
+        assert be.get_matched_subscriptions() == [], "a best-effort writer must not match the reliable leg reader"
+        be.write(rt.Float64MultiArray(data=[0.3, 0.31, 0.32, 0.33]))
+        rel.write(rt.Float64MultiArray(data=[0.4, 0.41, 0.42, 0.43]))
+        assert st.next_json(lambda j: j.get("cmd") == "legs")["legs"] == [0.4, 0.41, 0.42, 0.43]
+    finally:
+        done = st.stop()
+    assert done["stats"]["qos_incompatible"] >= 1, done
 
 
 def guid_of(key: uuid.UUID) -> list:

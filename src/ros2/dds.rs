@@ -15,7 +15,7 @@
 use super::msg::{self, RosMsg};
 use super::Ros2Error;
 use rustdds::no_key::{self, DataWriter, SimpleDataReader};
-use rustdds::policy::{Durability, History, Reliability};
+use rustdds::policy::{Durability, History, Reliability, ResourceLimits};
 use rustdds::{
     CDRSerializerAdapter, DomainParticipant, DomainParticipantBuilder, QosPolicies,
     QosPolicyBuilder, RTPSEntity, RepresentationIdentifier, Topic, TopicKind, GUID,
@@ -54,6 +54,31 @@ pub mod qos {
             .reliability(Reliability::BestEffort)
             .durability(Durability::Volatile)
             .history(History::KeepLast { depth: 10 })
+            .build()
+    }
+
+    /// Leg commands: reliable, volatile, keep last 10, and rustdds's topic cache bounded to
+    /// those 10 samples (its default keeps 64). Reliable, not best effort like `cmd_vel`: a
+    /// leg command too large for one datagram arrives in fragments, and rustdds keeps the
+    /// buffer of a best-effort sample that lost a fragment (the announced size, allocated at
+    /// the first fragment) until another fragmented sample reaches the same reader, which a
+    /// stream of normal leg commands never sends (issue 27, finding 8: three 32 MB leg
+    /// commands left 94 MB behind for good). A reliable reader has the writer repeat the
+    /// lost fragments, so the sample completes, reaches the node (which refuses it) and
+    /// leaves the cache once 10 newer samples replaced it. Best-effort leg publishers do not
+    /// match it: the node logs their incompatible QoS.
+    pub fn leg_commands() -> QosPolicies {
+        QosPolicyBuilder::new()
+            .reliability(Reliability::Reliable {
+                max_blocking_time: blocking(),
+            })
+            .durability(Durability::Volatile)
+            .history(History::KeepLast { depth: 10 })
+            .resource_limits(ResourceLimits {
+                max_samples: 10,
+                max_instances: 1,
+                max_samples_per_instance: 10,
+            })
             .build()
     }
 
@@ -360,5 +385,29 @@ mod tests {
         );
         // A transient-local writer (a latched publisher) matches the volatile reader too.
         assert_eq!(qos::latched().compliance_failure_wrt(&reader), None);
+    }
+
+    #[test]
+    fn the_leg_reader_is_reliable_with_a_cache_of_its_depth() {
+        // Reliable (lost fragments of a large sample are repaired, issue 27 finding 8): a
+        // reliable writer matches, a best-effort one does not.
+        let legs = qos::leg_commands();
+        assert_eq!(qos::ros_default().compliance_failure_wrt(&legs), None);
+        assert_eq!(qos::latched().compliance_failure_wrt(&legs), None);
+        let be_writer = QosPolicyBuilder::new()
+            .reliability(Reliability::BestEffort)
+            .build();
+        assert_eq!(
+            be_writer.compliance_failure_wrt(&legs),
+            Some(rustdds::dds::qos::QosPolicyId::Reliability)
+        );
+        // rustdds's topic cache keeps max(max_samples, depth) samples (64 by default).
+        assert_eq!(legs.history(), Some(History::KeepLast { depth: 10 }));
+        assert_eq!(legs.resource_limits().map(|r| r.max_samples), Some(10));
+        // cmd_vel stays best effort: it takes both kinds of publishers.
+        assert_eq!(
+            qos::any_publisher().reliability(),
+            Some(Reliability::BestEffort)
+        );
     }
 }
