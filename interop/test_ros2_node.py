@@ -244,7 +244,10 @@ def test_diagnostics_arrive_with_one_status_per_module_bus_and_supervisor(node, 
         "rollbase: CAN bus", "rollbase: supervisor"]
     by_name = {s.name: s for s in arrays[0].status}
     w1 = {kv.key: kv.value for kv in by_name["rollbase: wheel 1 (node 1)"].values}
-    assert w1 == {"rejected": "0", "late": "0", "lost": "0", "watchdog_trips": "0", "age_cycles": "0", "state": "enabled"}
+    # The CiA 402 EMCY counts and history (issue 24) are there for every module, zero and "-"
+    # (none came) on the synthetic state.
+    assert w1 == {"rejected": "0", "late": "0", "lost": "0", "watchdog_trips": "0", "age_cycles": "0", "state": "enabled",
+                  "emcy_informational": "0", "emcy_faults": "0", "emcy_last": "-"}
     assert all(s.level == 0 for s in arrays[0].status), [(s.name, s.level, s.message) for s in arrays[0].status]
     bus = {kv.key: kv.value for kv in by_name["rollbase: CAN bus"].values}
     assert float(bus["load"]) == 0.3

@@ -1300,7 +1300,10 @@ impl Shaper {
                 return false;
             }
             let g = [t[0] + legs[i] * self.ca[i], t[1] + legs[i] * self.sa[i]];
-            if norm(g) <= REST_EPS {
+            // As slow as a wheel the aiming leaves alone (AIM_SPEED, `turning_scale`): a leg
+            // that barely moves (its target within a hair of where it is) does not wait for
+            // an alignment its wheel is never given.
+            if norm(g) <= AIM_SPEED {
                 return true;
             }
             let psi = g[1].atan2(g[0]);
