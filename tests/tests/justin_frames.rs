@@ -8,8 +8,8 @@
 //! with its avoidance runs the avoided path time-scaled within the limits (longer: 24 320
 //! frames instead of 18 625 native). Issue 24 then changed the CiA 402 boot on purpose
 //! (0x60A9/0x608F read back, the quick-stop objects written, two SDO requests per device
-//! per cycle): the CiA 402 hashes were re-taken after merging it (42f2e1e; 290 more frames,
-//! the motion's frames unchanged in kind). A change of the frames for the default platform is a
+//! per cycle): the CiA 402 hashes were re-taken after merging it (42f2e1e; 290 and 317 more
+//! frames for seed 000 and seed 001). A change of the frames for the default platform is a
 //! behaviour change: if one is ever intended, say why in the commit and update the hash
 //! from the test's output.
 
