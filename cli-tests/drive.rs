@@ -557,8 +557,27 @@ fn sigterm_while_driving(profile: &'static str) {
     signal_while_driving(profile, libc::SIGTERM, "SIGTERM");
 }
 
+/// [`signal_attempt`], once more when the first attempt ended in a stale-feedback fault: a
+/// real-time run over the bridge faults by design when the machine stalls a process for 16 ms
+/// (4 cycles), and these shared 2-core machines do (their timer baseline alone shows stalls
+/// of 33.7 ms: docs/reliability-live.md). As in `.ci/run`'s VM stage, a host hiccup passes
+/// the second time and a real failure fails both runs, with the same assertions; any other
+/// outcome of the first attempt is final.
 fn signal_while_driving(profile: &'static str, sig: libc::c_int, name: &str) {
     let _serial = serial();
+    if let Err(stale) = signal_attempt(profile, sig, name) {
+        eprintln!("{profile} {name}: first attempt ended in {stale}; one more run");
+        if let Err(again) = signal_attempt(profile, sig, name) {
+            panic!(
+                "{profile} {name}: both attempts ended in a stale-feedback fault: {stale}; {again}"
+            );
+        }
+    }
+}
+
+/// One run of [`signal_while_driving`]: `Err` (with the fault reason) only when the drive
+/// faulted on stale feedback; every other failure panics.
+fn signal_attempt(profile: &'static str, sig: libc::c_int, name: &str) -> Result<(), String> {
     let dir = scratch(&format!("{profile}-{name}"));
     let record = dir.join("x.mcap");
     let (_bridge, mut sim, url) = start_platform(profile);
@@ -577,6 +596,20 @@ fn signal_while_driving(profile: &'static str, sig: libc::c_int, name: &str) {
     let (status, stdout) = drive.wait();
     drop(stdin);
     let stderr = drive.stderr();
+    if status.code() != Some(0) {
+        let reason = stdout
+            .lines()
+            .rev()
+            .find(|l| l.trim_start().starts_with('{'))
+            .and_then(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+            .and_then(|v| v["fault_reason"].as_str().map(str::to_string))
+            .unwrap_or_default();
+        if reason.starts_with("stale feedback") {
+            let _ = stop_sim(&mut sim);
+            let _ = std::fs::remove_dir_all(&dir);
+            return Err(reason);
+        }
+    }
     assert_eq!(
         status.code(),
         Some(0),
@@ -625,6 +658,7 @@ fn signal_while_driving(profile: &'static str, sig: libc::c_int, name: &str) {
         );
     }
     let _ = std::fs::remove_dir_all(dir);
+    Ok(())
 }
 
 #[test]
