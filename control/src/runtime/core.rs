@@ -266,6 +266,10 @@ pub struct CycleCore {
     armed_cycle: u64,
     /// Latest time passed in (s).
     now: f64,
+    /// SYNC time of this cycle ([`CycleCore::start_cycle`]) and of the cycle whose readings
+    /// the odometry last integrated: the interval the odometry integrates over.
+    sync_t: f64,
+    odom_sync_t: Option<f64>,
     /// Commands taken since the last finished cycle (for the record), their count, and those
     /// beyond the record's room.
     taken: [Option<CommandEvent>; MAX_RECORDED_COMMANDS],
@@ -323,6 +327,22 @@ pub const SETTLED_LEG: f64 = 0.001;
 /// Speed (rad/s) below which a drive has settled at the end of a trajectory (a wheel's
 /// 0.1 rad/s is 8.5 mm/s: the controllers' creep onto the goal).
 pub const SETTLED_SPEED: f64 = 0.1;
+
+/// The time the odometry integrates a cycle's readings over: the whole number of periods
+/// `dt` between the SYNC that sampled them (`sync`) and the SYNC of the readings it
+/// integrated last (`prev`), at least one. A real-time runtime that falls behind skips
+/// cycles ([`super::realtime`]): no SYNC goes out for them, but the base keeps moving, so
+/// integrating one nominal period would lose the skipped cycles' travel (seen under load:
+/// the pose fell 19 mm behind its own twists in 0.14 s). SYNCs are sent on the period's
+/// grid, so the interval is a whole number of periods; rounding it keeps lockstep runs
+/// (where `k·dt − (k−1)·dt` differs from `dt` in the last bit) bit-identical to integrating
+/// `dt`.
+fn odometry_interval(dt: f64, prev: Option<f64>, sync: f64) -> f64 {
+    match prev {
+        Some(p) if (sync - p).is_finite() && sync > p => ((sync - p) / dt).round().max(1.0) * dt,
+        _ => dt,
+    }
+}
 
 impl CycleCore {
     /// Builds the core following a pre-planned trajectory; allocates everything it will
@@ -443,6 +463,8 @@ impl CycleCore {
             arm_pending: false,
             armed_cycle: 0,
             now: 0.0,
+            sync_t: 0.0,
+            odom_sync_t: None,
             taken: [None; MAX_RECORDED_COMMANDS],
             n_taken: 0,
             taken_omitted: 0,
@@ -749,6 +771,7 @@ impl CycleCore {
         self.rejected_this_cycle = 0;
         self.bits_this_cycle = [0; MAX_BUSES];
         self.now = t;
+        self.sync_t = t;
         for o in outs.iter_mut() {
             o.clear();
         }
@@ -1006,7 +1029,9 @@ impl CycleCore {
         self.now = self.now.max(t);
         self.arm_when_ready();
         let fb = self.decode();
-        let odo = self.odom.update(&self.platform, &fb.meas, dt);
+        let odo_dt = odometry_interval(dt, self.odom_sync_t, self.sync_t);
+        self.odom_sync_t = Some(self.sync_t);
+        let odo = self.odom.update(&self.platform, &fb.meas, odo_dt);
         // Reference: the trajectory or the shaper (after the command timeout), then avoidance.
         self.live_tick(t);
         let nominal = self.reference(&fb.meas, &odo);
