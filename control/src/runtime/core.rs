@@ -270,6 +270,8 @@ pub struct CycleCore {
     /// the odometry last integrated: the interval the odometry integrates over.
     sync_t: f64,
     odom_sync_t: Option<f64>,
+    /// SYNC time of the cycle run before this one (none before the first).
+    prev_sync_t: Option<f64>,
     /// Commands taken since the last finished cycle (for the record), their count, and those
     /// beyond the record's room.
     taken: [Option<CommandEvent>; MAX_RECORDED_COMMANDS],
@@ -465,6 +467,7 @@ impl CycleCore {
             now: 0.0,
             sync_t: 0.0,
             odom_sync_t: None,
+            prev_sync_t: None,
             taken: [None; MAX_RECORDED_COMMANDS],
             n_taken: 0,
             taken_omitted: 0,
@@ -771,6 +774,9 @@ impl CycleCore {
         self.rejected_this_cycle = 0;
         self.bits_this_cycle = [0; MAX_BUSES];
         self.now = t;
+        if self.cycle > 0 {
+            self.prev_sync_t = Some(self.sync_t);
+        }
         self.sync_t = t;
         for o in outs.iter_mut() {
             o.clear();
@@ -1362,7 +1368,13 @@ impl CycleCore {
         // counter, no lost answer; CiA 402: the count of the drive's TPDOs), the two arrived
         // in consecutive cycles (no lost SYNC, which the counter cannot show: a device that
         // saw no SYNC sends nothing) and both arrived after their own cycle's SYNC (neither is
-        // a late answer to the SYNC before). Other pairs are not checked.
+        // a late answer to the SYNC before). Consecutive cycles are one SYNC apart only when
+        // the runtime skipped none between them (a real-time run that fell behind skips
+        // cycles and sends no SYNC for them; the modules keep steering meanwhile), so their
+        // SYNC times must be one period apart too. Other pairs are not checked.
+        let one_period = self
+            .prev_sync_t
+            .is_some_and(|p| ((self.sync_t - p) / dt).round() == 1.0);
         let mut steer_jump = [0.0; MAX_WHEELS];
         for (i, j) in steer_jump.iter_mut().enumerate().take(self.n) {
             let fb = &mut self.fb[i];
@@ -1370,7 +1382,7 @@ impl CycleCore {
                 (fb.steer_fresh, fb.steer, fb.steer_at.cycle, fb.prev_steer)
             {
                 let k = fb.steer_seq.wrapping_sub(pk) & 0x0F;
-                if k == 1 && pc + 1 == c && p_on_time && fb.steer_on_time {
+                if k == 1 && pc + 1 == c && one_period && p_on_time && fb.steer_on_time {
                     let predicted = pa + 0.5 * (par + ar) * dt;
                     *j = crate::angle::diff(a, predicted);
                 }

@@ -259,7 +259,12 @@ pub fn run_realtime_io(
         // with the SYNC, not a cycle later.
         core.after_late_frames(td, &mut out);
         send_all(bus, core, &out, &mut report);
-        sleep_until(deadline + window_ns);
+        // The modules get the whole window to answer from the moment the SYNC went out, not
+        // from the deadline: a cycle that woke late (a busy host) would otherwise close its
+        // window before the answers came and steer on the previous SYNC's readings, a cycle
+        // old (tests/tests/realtime_late_sync.rs).
+        let sync_sent = ts_ns(&monotonic_now());
+        sleep_until(sync_sent.max(deadline) + window_ns);
         let now_rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
         drain(bus, core, now_rt, &mut report);
         // Commands last, just before the setpoints are computed: a command that arrived
