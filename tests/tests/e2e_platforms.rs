@@ -5,10 +5,11 @@
 //! offset (MPO-700-like, whose ±1.2-turn steering range seed 000's one turn stays inside),
 //! mirrored motors (three-wheel).
 //!
-//! The three-wheel example's ±170° steering stops are taken off here ([`endless`]): seed
-//! 000's full turn needs every wheel to unwind past its stop, which the time scaling does
-//! not plan yet (docs/examples/README.md, "Limits"). The six-wheel example's two buses are
-//! not run here either: the lockstep harness has one medium.
+//! The three-wheel example's ±170° steering stops are taken off ([`endless`]) for the runs
+//! that compare it with the other platforms; seed 000's full turn with the stops, where the
+//! time scaling stops the platform to unwind each wheel, is the steering-range test
+//! ([`unwinds_within_the_steering_range`]). The six-wheel example's two buses are run in
+//! tests/tests/e2e_buses.rs.
 //!
 //! Live sessions: only the three-wheel base on the native profile holds the bounds so far.
 //! The same session measured 5.2 mm (three-wheel, CiA 402), 12.9 mm (MPO-700-like, native)
@@ -158,4 +159,84 @@ fn three_wheel_live_session_native() {
         ControllerKind::Dfl,
     );
     check_live("three-wheel live native", &out);
+}
+
+/// Issue 25's steering-range test: seed 000 turns the platform a full turn while it
+/// translates, so every wheel of a fixed footprint steers a full turn relative to the body,
+/// past the three-wheel example's ±170° stops. The time scaling stops the platform where a
+/// wheel's directions no longer fit inside its range and unwinds it there (the dwell turns it
+/// back, the wheel then rolling the other way round). Every cycle, each wheel's steering
+/// angle as its own encoder reports it (one turn), followed by continuity from the first
+/// reading (the one nearest the range's centre), stays inside its range; the plant's angle
+/// at the end agrees with where that following ended. Seed 000's bounds hold as on the
+/// endless-steering platform, both profiles.
+fn unwinds_within_the_steering_range(profile: Protocol) {
+    let p = Platform::three_wheel();
+    let ranges: Vec<_> = p
+        .wheels
+        .iter()
+        .map(|w| w.steering_range().expect("the example has steering stops"))
+        .collect();
+    let n = p.n();
+    let out = seed000(p, profile, ControllerKind::Dfl);
+    let first = out
+        .records
+        .iter()
+        .find(|r| r.feedback_age[..n].iter().all(|&a| a == 0))
+        .expect("feedback");
+    let mut angle: Vec<f64> = (0..n)
+        .map(|i| ranges[i].first(first.measurement.wheels[i].steer_angle))
+        .collect();
+    let (mut lo, mut hi) = (angle.clone(), angle.clone());
+    // One encoder count of slack at the stops (the readings are quantised).
+    let slack = 1e-3;
+    for r in &out.records {
+        for i in 0..n {
+            let m = r.measurement.wheels[i].steer_angle;
+            angle[i] += rollbase_control::angle::diff(m, angle[i]);
+            lo[i] = lo[i].min(angle[i]);
+            hi[i] = hi[i].max(angle[i]);
+            assert!(
+                angle[i] >= ranges[i].min - slack && angle[i] <= ranges[i].max + slack,
+                "{profile:?}: wheel {i} steered to {:.2}° at t = {:.3} s, outside its range [{:.1}°, {:.1}°]",
+                angle[i].to_degrees(),
+                r.t,
+                ranges[i].min.to_degrees(),
+                ranges[i].max.to_degrees()
+            );
+        }
+    }
+    for (i, (&truth, &a)) in out.final_truth_steer.iter().zip(&angle).enumerate() {
+        assert!(
+            rollbase_control::angle::diff(truth, a).abs() < 0.01,
+            "{profile:?}: wheel {i}: the plant ends at {truth} rad, the followed readings at {a}"
+        );
+    }
+    let sweep: Vec<String> = (0..n)
+        .map(|i| format!("[{:.0}°, {:.0}°]", lo[i].to_degrees(), hi[i].to_degrees()))
+        .collect();
+    let timing = out.timing.expect("time-scaled");
+    println!(
+        "{profile:?}: steering swept {}; executed {:.2} s (optimal {:.2} s, dwells {:.2} s)",
+        sweep.join(" "),
+        timing.executed_duration_s,
+        timing.optimal_duration_s,
+        timing.dwell_s
+    );
+    // The stops were reached: some wheel swept more than half a turn and the plan dwelt.
+    assert!(
+        (0..n).any(|i| hi[i] - lo[i] > std::f64::consts::PI) && timing.dwell_s > 0.0,
+        "the test does not exercise the stops"
+    );
+    check_seed000(&format!("three-wheel ±170° {profile:?}"), &out);
+}
+
+#[test]
+fn three_wheel_unwinds_within_its_steering_range_native() {
+    unwinds_within_the_steering_range(Protocol::Native);
+}
+
+#[test]
+fn three_wheel_unwinds_within_its_steering_range_cia402() {
+    unwinds_within_the_steering_range(Protocol::Cia402);
 }

@@ -147,6 +147,34 @@
 //! it is). These stretches are reported with the dwells
 //! ([`ScaledTrajectory::dwells`], [`Timing::dwell_s`] counts only the true dwells).
 //!
+//! # Steering ranges
+//!
+//! A wheel with a steering range ([`crate::angle::SteerRange`], cable stops) cannot follow
+//! a direction that keeps turning: seed 000 turns a fixed-footprint platform a full turn
+//! while it translates, so each wheel's direction relative to the body turns a full turn
+//! too, past ±170° stops. Each direction has two branches, φ and φ + π (rolling backwards);
+//! a piece of the path whose angles span [lo, hi] fits inside [min, max] on a branch
+//! φ + mπ exactly when some integer m satisfies min − lo ≤ mπ ≤ max − hi (`branches_inside`).
+//! A range wider than π always leaves room for a span up to (max − min) − π; beyond that
+//! the wheel must turn back while it does not roll — at a stop of the platform, since on a
+//! rigid body no wheel stops rolling on its own unless the ICR sits on it.
+//!
+//! So the planner adds stops (`range_stops`): walking each motion's grid from its start,
+//! it cuts at the last point up to which every ranged wheel's angles still fit on some
+//! branch, then repeats on the rest (at most [`MAX_RANGE_STOPS`] cuts). A cut lies where
+//! the path moves, so the clock is brought to ṡ = 0 there (the piece ends at rest in
+//! executed time: its last grid point's ṡ bound is 0) and restarts from ṡ = 0 after it. Each
+//! piece is then put on the branch inside the range nearest where the wheel was (the first
+//! piece: nearest the range's centre, where homing leaves it), and the dwell at the cut
+//! turns the wheel from its arrival angle to its departure angle — about half a turn, the
+//! other branch — with the dwell's quintic, which is monotonic between two rests and so
+//! never leaves the range. A path that fits adds no stop: the plan of a platform without
+//! ranges, or of a path within them, is unchanged bit for bit.
+//!
+//! A dwell's steering is followed by the controllers as any held wheel's: the kinematic
+//! controller does not report an interior rest finished while the steering reference still
+//! moves or a wheel is off it ([`crate::tracking::kinematic`]).
+//!
 //! # What no timing can fix
 //!
 //! [`ScaledTrajectory::plan`] (and [`check_fixable`]) refuses, naming the waypoint when the
@@ -588,6 +616,17 @@ struct SteerGeometry {
 }
 
 impl SteerGeometry {
+    /// The smallest and largest angle wheel `i` takes on the grid (its blends between grid
+    /// points are quintics between their end states, within a grid step of them).
+    fn extent(&self, n: usize, i: usize) -> (f64, f64) {
+        let mut e = (f64::INFINITY, f64::NEG_INFINITY);
+        for j in 0..self.taus.len() {
+            let a = self.angle[j * n + i];
+            e = (e.0.min(a), e.1.max(a));
+        }
+        e
+    }
+
     /// Moves wheel `i`'s angles by `d` (a multiple of π: the other branch of the same
     /// directions).
     fn shift(&mut self, n: usize, i: usize, d: f64) {
@@ -736,6 +775,7 @@ fn constraints(
     n: usize,
     g: &Grid,
     open: (bool, bool),
+    halt: (bool, bool),
 ) -> Vec<Point> {
     let l = &p.limits;
     let rw = p.wheel_radius;
@@ -744,6 +784,10 @@ fn constraints(
     (0..points)
         .map(|j| {
             let mut xbar = g.caps[j] * g.caps[j];
+            // An end where the steering range stops a moving platform: the clock stops there.
+            if (j == 0 && halt.0) || (j + 1 == points && halt.1) {
+                xbar = 0.0;
+            }
             if (j == 0 && open.0) || (j + 1 == points && open.1) {
                 let r0 = start_steer_rate(p, cfg);
                 for i in 0..n {
@@ -871,6 +915,88 @@ pub fn check_fixable(
     Ok(())
 }
 
+/// The branches (multiples m of π) that put angles spanning `extent` inside range `r`:
+/// `Some((lo, hi))` with every m in lo..=hi fitting, `None` when none does.
+fn branches_inside(r: crate::angle::SteerRange, extent: (f64, f64)) -> Option<(f64, f64)> {
+    let (lo, hi) = extent;
+    if !(lo.is_finite() && hi.is_finite()) {
+        return None;
+    }
+    let m_lo = ((r.min - lo) / PI - 1e-9).ceil();
+    let m_hi = ((r.max - hi) / PI + 1e-9).floor();
+    (m_lo <= m_hi).then_some((m_lo, m_hi))
+}
+
+/// Most stops the steering ranges may add to a path ([`range_stops`]).
+const MAX_RANGE_STOPS: usize = 256;
+
+/// Adds to `stops` where a wheel with a steering range must stop to unwind (module docs,
+/// "Steering ranges"): along each motion, the first grid point beyond which the wheel's
+/// directions since the motion's start no longer fit inside its range on any branch
+/// (turned by a multiple of π, the wheel rolling backwards on the odd ones). The motion
+/// is cut at the last point that fits; the dwell there turns the wheel back within its
+/// range while the platform stands. Repeated on what follows the cut until every motion
+/// fits. Returns the cuts (the path moves there: its clock must stop).
+fn range_stops(
+    p: &Platform,
+    inner: &dyn Trajectory,
+    cfg: &TimeScaleConfig,
+    n: usize,
+    nominal: f64,
+    stops: &mut Vec<(f64, f64)>,
+) -> Result<Vec<f64>, TimeScaleError> {
+    let mut cuts = Vec::new();
+    if !p
+        .wheels
+        .iter()
+        .take(n)
+        .any(|w| w.steering_range().is_some())
+    {
+        return Ok(cuts);
+    }
+    for _ in 0..MAX_RANGE_STOPS {
+        let mut cut = None;
+        for part in layout(stops, nominal) {
+            let Part::Motion { a, b, .. } = part else {
+                continue;
+            };
+            let mut grid = Grid::build(p, inner, cfg, n, a, b)?;
+            let (geo, _) = steering_geometry(p, inner, cfg, n, &mut grid)?;
+            let points = geo.taus.len();
+            for (i, w) in p.wheels.iter().enumerate().take(n) {
+                let Some(r) = w.steering_range() else {
+                    continue;
+                };
+                let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+                for j in 0..points {
+                    let x = geo.angle[j * n + i];
+                    let (l, h) = (lo.min(x), hi.max(x));
+                    if branches_inside(r, (l, h)).is_none() {
+                        // Cut at the last point that fits (at least one grid step in: the
+                        // motion always advances).
+                        let at = geo.taus[j.saturating_sub(1).max(1).min(points - 1)];
+                        if at > a && at < b {
+                            cut = Some(cut.map_or(at, |c: f64| c.min(at)));
+                        }
+                        break;
+                    }
+                    (lo, hi) = (l, h);
+                }
+            }
+            if cut.is_some() {
+                break;
+            }
+        }
+        let Some(at) = cut else {
+            return Ok(cuts);
+        };
+        cuts.push(at);
+        stops.push((at, at));
+        stops.sort_by(|x, y| x.0.total_cmp(&y.0));
+    }
+    Ok(cuts)
+}
+
 /// A part of the path in the order it runs: a motion between stops, or a stop.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Part {
@@ -988,7 +1114,9 @@ impl ScaledTrajectory {
             return Err(TimeScaleError::Duration { duration: nominal });
         }
         let n = p.n().min(inner.n_legs()).min(MAX_WHEELS);
-        let parts = layout(&stops_of(p, inner.as_ref(), n, nominal), nominal);
+        let mut stops = stops_of(p, inner.as_ref(), n, nominal);
+        let cuts = range_stops(p, inner.as_ref(), &cfg, n, nominal, &mut stops)?;
+        let parts = layout(&stops, nominal);
         let mut pieces: Vec<Piece> = Vec::with_capacity(parts.len());
         let mut optimal = 0.0;
         for part in &parts {
@@ -999,7 +1127,17 @@ impl ScaledTrajectory {
                 to_stop,
             } = *part
             {
-                let piece = Piece::plan(p, inner.as_ref(), &cfg, n, a, b, (!from_stop, !to_stop))?;
+                let halt = (cuts.contains(&a), cuts.contains(&b));
+                let piece = Piece::plan(
+                    p,
+                    inner.as_ref(),
+                    &cfg,
+                    n,
+                    a,
+                    b,
+                    (!from_stop, !to_stop),
+                    halt,
+                )?;
                 optimal += piece.optimal;
                 if optimal.is_nan() || optimal > MAX_EXECUTED_S {
                     return Err(piece_too_slow(p, &cfg, inner.as_ref(), n, &piece, optimal));
@@ -1007,12 +1145,28 @@ impl ScaledTrajectory {
                 pieces.push(piece);
             }
         }
-        // Every piece on the branch of its wheels' directions nearest the one before it.
-        for k in 1..pieces.len() {
+        // Every piece on the branch of its wheels' directions nearest the one before it; a
+        // wheel with a steering range on the branch nearest that among those inside its range
+        // (the first piece: nearest the range's centre, where homing leaves the wheel), so
+        // the dwell between two pieces unwinds it (module docs, "Steering ranges").
+        for k in 0..pieces.len() {
             for i in 0..n {
-                let end = pieces[k - 1].end_angle(n, i);
+                let range = p.wheels[i].steering_range();
+                if k == 0 && range.is_none() {
+                    continue;
+                }
                 let start = pieces[k].start_angle(i);
-                let d = ((end - start) / PI).round() * PI;
+                let from = match (k, range) {
+                    (0, Some(r)) => r.centre(),
+                    _ => pieces[k - 1].end_angle(n, i),
+                };
+                let mut m = ((from - start) / PI).round();
+                if let Some(r) = range {
+                    if let Some((lo, hi)) = branches_inside(r, pieces[k].geo.extent(n, i)) {
+                        m = m.clamp(lo, hi);
+                    }
+                }
+                let d = m * PI;
                 if d != 0.0 && d.is_finite() {
                     pieces[k].geo.shift(n, i, d);
                 }
@@ -1282,7 +1436,8 @@ impl ScaledTrajectory {
 
 impl Piece {
     /// Plans the clock of the path from τ `a` to `b` (module docs, "Planning"); `open` as
-    /// for [`constraints`].
+    /// for [`constraints`]; `halt`: the clock stops at that end (a cut the steering ranges
+    /// made where the path moves, [`range_stops`]).
     #[allow(clippy::too_many_arguments)]
     fn plan(
         p: &Platform,
@@ -1292,10 +1447,11 @@ impl Piece {
         a: f64,
         b: f64,
         open: (bool, bool),
+        halt: (bool, bool),
     ) -> Result<Self, TimeScaleError> {
         let mut grid = Grid::build(p, inner, cfg, n, a, b)?;
         let (geo, steer_needed) = steering_geometry(p, inner, cfg, n, &mut grid)?;
-        let base = constraints(p, cfg, n, &grid, open);
+        let base = constraints(p, cfg, n, &grid, open, halt);
         let points = grid.points();
         let taus = &grid.taus;
         let mut fix = vec![1.0f64; points];

@@ -41,7 +41,12 @@
 //!    short one crosses a stop), and the branch decision compares errors within the ranges.
 //!
 //! `finished` is raised once the reference, after having moved, is at rest (all reference contact speeds below
-//! 1e-6 m/s) and the pose/leg errors are below 0.1 mm / 1e-4 rad.
+//! 1e-6 m/s, and with a steering reference every centred wheel's steering rate below 1e-6
+//! rad/s and its steering error below 1e-3 rad) and the pose/leg errors are below 0.1 mm /
+//! 1e-4 rad. A finished controller commands zero: without the steering condition it stopped
+//! the wheels at the start of a dwell, where the platform stands but the time scaling turns
+//! them (a ranged wheel unwinding, a corner at a stop), and they then turned while the base
+//! moved off (35 mm off on the three-wheel ±170° seed 000 run).
 
 // Index loops over parallel per-wheel arrays read better than zipped iterators here.
 #![allow(clippy::needless_range_loop)]
@@ -347,9 +352,25 @@ impl KinematicController {
             u[0].hypot(u[1]) < 1e-6
         });
         self.started |= !ref_rest;
+        // The reference rests only once its steering does too: during a dwell (a stop where
+        // the time scaling turns the wheels, e.g. to unwind one within its steering range)
+        // the platform stands while held wheels follow the steering reference.
+        let steer_rest = !r.steer.valid
+            || (0..n).all(|i| {
+                if p.wheels[i].off_centred() {
+                    return true;
+                }
+                let e = angle::steer_error(
+                    p.wheels[i].steering_range(),
+                    r.steer.angle[i],
+                    m.wheels[i].steer_angle,
+                );
+                r.steer.rate[i].abs() < 1e-6 && (!e.is_finite() || e.abs() < 1e-3)
+            });
         out.finished = self.terminates
             && self.started
             && ref_rest
+            && steer_rest
             && ex.hypot(ey) < 1e-4
             && eth.abs() < 1e-4
             && max_leg_err < 1e-4;
