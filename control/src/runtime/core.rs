@@ -272,6 +272,10 @@ pub struct CycleCore {
     odom_sync_t: Option<f64>,
     /// SYNC time of the cycle run before this one (none before the first).
     prev_sync_t: Option<f64>,
+    /// When this cycle's SYNC and the previous cycle's really went out (s; the SYNC time
+    /// unless the runtime says otherwise: [`CycleCore::sync_sent_at`]).
+    sync_sent: f64,
+    prev_sync_sent: Option<f64>,
     /// Commands taken since the last finished cycle (for the record), their count, and those
     /// beyond the record's room.
     taken: [Option<CommandEvent>; MAX_RECORDED_COMMANDS],
@@ -468,6 +472,8 @@ impl CycleCore {
             sync_t: 0.0,
             odom_sync_t: None,
             prev_sync_t: None,
+            sync_sent: 0.0,
+            prev_sync_sent: None,
             taken: [None; MAX_RECORDED_COMMANDS],
             n_taken: 0,
             taken_omitted: 0,
@@ -776,13 +782,26 @@ impl CycleCore {
         self.now = t;
         if self.cycle > 0 {
             self.prev_sync_t = Some(self.sync_t);
+            self.prev_sync_sent = Some(self.sync_sent);
         }
         self.sync_t = t;
+        self.sync_sent = t;
         for o in outs.iter_mut() {
             o.clear();
         }
         self.link.start_cycle(self.cycle, t, outs);
         self.record_sent(t, outs);
+    }
+
+    /// The time (s, the cycle clock) this cycle's SYNC really went out, when it differs from
+    /// the time passed to [`CycleCore::start_cycle`] (a real-time cycle that woke late sends
+    /// it late). The modules sample their encoders when the SYNC reaches them, so the
+    /// encoder-jump check predicts a steering reading from the previous one over the time
+    /// between the two SYNCs as sent, not one period.
+    pub fn sync_sent_at(&mut self, t: f64) {
+        if t.is_finite() && t >= self.sync_t {
+            self.sync_sent = t;
+        }
     }
 
     /// Records every frame of `outs` (buffer b = bus b) as sent at `t`.
@@ -1375,6 +1394,12 @@ impl CycleCore {
         let one_period = self
             .prev_sync_t
             .is_some_and(|p| ((self.sync_t - p) / dt).round() == 1.0);
+        // The time between the two SYNCs as sent (one period in lockstep; late wake-ups make
+        // it shorter or longer in real time).
+        let between = match self.prev_sync_sent {
+            Some(p) if self.sync_sent > p && (self.sync_sent - p).is_finite() => self.sync_sent - p,
+            _ => dt,
+        };
         let mut steer_jump = [0.0; MAX_WHEELS];
         for (i, j) in steer_jump.iter_mut().enumerate().take(self.n) {
             let fb = &mut self.fb[i];
@@ -1383,7 +1408,7 @@ impl CycleCore {
             {
                 let k = fb.steer_seq.wrapping_sub(pk) & 0x0F;
                 if k == 1 && pc + 1 == c && one_period && p_on_time && fb.steer_on_time {
-                    let predicted = pa + 0.5 * (par + ar) * dt;
+                    let predicted = pa + 0.5 * (par + ar) * between;
                     *j = crate::angle::diff(a, predicted);
                 }
             }

@@ -117,6 +117,10 @@ pub struct StepHooks<'a> {
     /// cycle core (`start_cycle`; `on_frame` … `finish_cycle`): to count allocations or time
     /// the core alone.
     pub around_core: Option<&'a mut dyn FnMut(bool)>,
+    /// The cycle woke this long (s) after its start: the SYNC goes out late (the core is
+    /// told, [`CycleCore::sync_sent_at`]) and the feedback window counts from it, as in the
+    /// real-time runtime. 0 (the default): on time.
+    pub sync_delay: f64,
 }
 
 /// The lockstep driver's own state between cycles (time, the peer's queued frames, buffers).
@@ -235,11 +239,25 @@ pub fn lockstep_cycle(
     let k = st.k;
     st.k += 1;
     let t0 = Duration::from_secs_f64(k as f64 * st.period);
-    let t_win = Duration::from_secs_f64(k as f64 * st.period + st.window);
-    peer.advance_to(t0);
+    let delay = if hooks.sync_delay.is_finite() {
+        // At most until the window still closes before the next cycle starts.
+        hooks
+            .sync_delay
+            .clamp(0.0, 0.99 * (st.period - st.window).max(0.0))
+    } else {
+        0.0
+    };
+    // The SYNC's send time; exactly t0 when on time (the common case keeps its bits).
+    let t_sync = if delay > 0.0 {
+        Duration::from_secs_f64(k as f64 * st.period + delay)
+    } else {
+        t0
+    };
+    let t_win = Duration::from_secs_f64(k as f64 * st.period + delay + st.window);
+    peer.advance_to(t_sync);
     let truth_at_sync = peer.truth();
-    st.flush_peer(bus, peer, t0);
-    bus.set_time(t0);
+    st.flush_peer(bus, peer, t_sync);
+    bus.set_time(t_sync);
     let mut around = |on: bool| {
         if let Some(h) = hooks.around_core.as_mut() {
             h(on)
@@ -248,6 +266,9 @@ pub fn lockstep_cycle(
     if !hooks.controller_silent {
         around(true);
         core.start_cycle(t0.as_secs_f64(), &mut st.out);
+        if delay > 0.0 {
+            core.sync_sent_at(t_sync.as_secs_f64());
+        }
         around(false);
         // What came in after the last window (late answers, the devices' answers to the
         // requests sent at the end of the last cycle) is taken now, before the SYNC goes

@@ -264,6 +264,7 @@ pub fn run_realtime_io(
         // window before the answers came and steer on the previous SYNC's readings, a cycle
         // old (tests/tests/realtime_late_sync.rs).
         let sync_sent = ts_ns(&monotonic_now());
+        core.sync_sent_at((sync_sent - start) as f64 * 1e-9);
         sleep_until(sync_sent.max(deadline) + window_ns);
         let now_rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
         drain(bus, core, now_rt, &mut report);
