@@ -240,3 +240,118 @@ fn three_wheel_unwinds_within_its_steering_range_native() {
 fn three_wheel_unwinds_within_its_steering_range_cia402() {
     unwinds_within_the_steering_range(Protocol::Cia402);
 }
+
+/// The steering-range test for live commands: a 20 Hz stream whose direction of travel
+/// turns on at 0.5 rad/s (0.3 m/s, no rotation) for 20 s, 10 rad in all, so every wheel of
+/// the three-wheel example would have to steer 1.6 turns, past its ±170° stops. The
+/// shaper stops the base before a wheel would come within [`RANGE_MARGIN`] of a stop and
+/// turns it back within its range (to the other branch: it then rolls backwards), then
+/// drives on (when this was written: stops at 156°, twice, about 2 s each). Every cycle each wheel's steering angle
+/// (its encoder, followed by continuity) stays inside its range, every command pair within
+/// the limits, and the base still travels most of the commanded path.
+///
+/// [`RANGE_MARGIN`]: rollbase_control::reference::shaper::RANGE_MARGIN
+fn live_unwinds_within_the_steering_range(profile: Protocol) {
+    use rollbase_control::service::ports::{CommandEvent, CommandKind};
+    let p = Platform::three_wheel();
+    let ranges: Vec<_> = p
+        .wheels
+        .iter()
+        .map(|w| w.steering_range().unwrap())
+        .collect();
+    let n = p.n();
+    let opts = LiveOptions {
+        profile,
+        max_seconds: 40.0,
+        platform: Some(p),
+        ..LiveOptions::default()
+    };
+    // The direction steps on by 45° every 1.5 s, 12 steps (540°).
+    let (speed, step, hold, steps) = (0.3, std::f64::consts::FRAC_PI_4, 1.5, 12);
+    let secs = hold * steps as f64;
+    let mut cmds = Vec::new();
+    let mut t = 0.0;
+    while t < secs {
+        let b = step * (t / hold).floor();
+        cmds.push(twist_at(t, speed * b.cos(), speed * b.sin(), 0.0));
+        t += 0.05;
+    }
+    for k in 0..5 {
+        cmds.push(twist_at(secs + 0.3 * f64::from(k), 0.0, 0.0, 0.0));
+    }
+    cmds.push(CommandEvent {
+        t: secs + 3.0,
+        kind: CommandKind::EndOfStream,
+    });
+    let out = run_live(&opts, &cmds);
+    let s = &out.summary;
+    let name = format!("three-wheel ±170° live {profile:?}");
+    println!("{name}: {}", s.to_json());
+    let first = out
+        .records
+        .iter()
+        .find(|r| r.feedback_age[..n].iter().all(|&a| a == 0))
+        .expect("feedback");
+    let mut angle: Vec<f64> = (0..n)
+        .map(|i| ranges[i].first(first.measurement.wheels[i].steer_angle))
+        .collect();
+    let (mut lo, mut hi) = (angle.clone(), angle.clone());
+    for r in &out.records {
+        for i in 0..n {
+            angle[i] +=
+                rollbase_control::angle::diff(r.measurement.wheels[i].steer_angle, angle[i]);
+            lo[i] = lo[i].min(angle[i]);
+            hi[i] = hi[i].max(angle[i]);
+            assert!(
+                angle[i] >= ranges[i].min - 1e-3 && angle[i] <= ranges[i].max + 1e-3,
+                "{name}: wheel {i} steered to {:.2}° at t = {:.3} s, outside [{:.1}°, {:.1}°]",
+                angle[i].to_degrees(),
+                r.t,
+                ranges[i].min.to_degrees(),
+                ranges[i].max.to_degrees()
+            );
+        }
+    }
+    let mut dist = 0.0;
+    for w in out.records.windows(2) {
+        if let (Some((a, _)), Some((b, _))) = (w[0].truth, w[1].truth) {
+            dist += (b.x - a.x).hypot(b.y - a.y);
+        }
+    }
+    let sweep: Vec<String> = (0..n)
+        .map(|i| format!("[{:.0}°, {:.0}°]", lo[i].to_degrees(), hi[i].to_degrees()))
+        .collect();
+    println!(
+        "{name}: steering swept {}; travelled {dist:.2} m of {:.2} m commanded",
+        sweep.join(" "),
+        speed * secs
+    );
+    // The direction of travel turned 540°, more than any range spans (340°): every wheel
+    // was turned back to the other branch on the way, rolling forwards (> 1 rad/s) at some
+    // times and backwards at others.
+    for i in 0..n {
+        let speeds = out
+            .records
+            .iter()
+            .map(|r| r.measurement.wheels[i].wheel_speed);
+        let (fwd, back) = speeds.fold((false, false), |(f, b), w| (f || w > 1.0, b || w < -1.0));
+        assert!(
+            fwd && back,
+            "{name}: wheel {i} never changed branch: the test does not exercise the stops"
+        );
+    }
+    assert_eq!(s.final_state, "stopped", "{name}: {:?}", s.fault_reason);
+    assert_tracking_bounds(s, &name);
+    assert_commands_within_limits(&out);
+    assert!(dist > 0.6 * speed * secs, "{name}: travelled only {dist} m");
+}
+
+#[test]
+fn three_wheel_live_unwinds_within_its_steering_range_native() {
+    live_unwinds_within_the_steering_range(Protocol::Native);
+}
+
+#[test]
+fn three_wheel_live_unwinds_within_its_steering_range_cia402() {
+    live_unwinds_within_the_steering_range(Protocol::Cia402);
+}

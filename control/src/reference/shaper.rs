@@ -140,6 +140,27 @@
 //! reference and steer it by its direction of travel above) follow the reference within a
 //! fraction of a millimetre.
 //!
+//! # Steering ranges
+//!
+//! A wheel with a steering range ([`crate::angle::SteerRange`]: cable stops) keeps its
+//! angle inside it, never wrapped: its two branches for a direction ψ are the turns of ψ
+//! and of ψ + π inside the range, and differences between its angles are plain (+170° and
+//! −170° are 340° apart, not 20°). So:
+//! - a turning wheel aims for the nearer of those in-range turns (possibly the long way
+//!   round, unwinding, at rest), and a wheel that starts to roll takes the in-range branch
+//!   nearest its angle;
+//! - a rolling wheel is not turned past a stop: a transition that would sweep its direction
+//!   to within [`RANGE_MARGIN`] of a stop (the sweep's end angle, the short way round as a
+//!   line in twist space turns it), or a stream tracked continuously whose goal direction
+//!   lies beyond, is planned as a stop first — the platform brakes along its direction, the
+//!   wheel turns back within its range while it stands, and the platform starts again,
+//!   the wheel then rolling on the other branch (backwards).
+//!
+//! On the three-wheel example (±170°), a stream whose direction steps on by 45° every 1.5 s
+//! through 540° keeps every wheel inside [−6°, 135°] and travels 4.7 m of the 5.4 m
+//! commanded, within 2.7 mm (`tests/tests/e2e_platforms.rs`); without this the wheels stuck
+//! at +170° and the base travelled 2.05 m.
+//!
 //! # Legs
 //!
 //! Leg targets are positions. A leg move runs from rest to rest on a quasi-trapezoidal
@@ -234,6 +255,10 @@ const TRACK_TIME: f64 = 0.05;
 const NOISE_WINDOW: usize = 16;
 /// Largest allowance (rad) for the noise of the direction a turning wheel aims for.
 const MAX_NOISE_ANGLE: f64 = 0.17;
+
+/// How far inside its steering stops (rad) a rolling wheel is kept: a transition that
+/// would turn it closer stops the platform and unwinds it (module docs, "Steering ranges").
+pub const RANGE_MARGIN: f64 = 0.05;
 
 /// Tunables of the shaper (defaults documented per field).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -481,6 +506,8 @@ pub struct Shaper {
     limits: Limits,
     lam_min: [f64; MAX_WHEELS],
     lam_max: [f64; MAX_WHEELS],
+    /// Per wheel, its steering range (module docs, "Steering ranges").
+    ranges: [Option<angle::SteerRange>; MAX_WHEELS],
     t: f64,
     pose: Pose,
     legs: [f64; MAX_WHEELS],
@@ -557,8 +584,10 @@ impl Shaper {
         let mut lam_min = [0.0; MAX_WHEELS];
         let mut lam_max = [0.0; MAX_WHEELS];
         let mut legs = [0.0; MAX_WHEELS];
+        let mut ranges = [None; MAX_WHEELS];
         for i in 0..n {
             let w = &p.wheels[i];
+            ranges[i] = w.steering_range();
             (sa[i], ca[i]) = w.alpha.sin_cos();
             lam_min[i] = w.lambda_min;
             lam_max[i] = w.lambda_max;
@@ -577,6 +606,7 @@ impl Shaper {
             limits: p.limits,
             lam_min,
             lam_max,
+            ranges,
             t: 0.0,
             pose: Pose::default(),
             legs,
@@ -1191,6 +1221,40 @@ impl Shaper {
     /// Turning wheels: their targets from the goal `g`, and the goal scaled so that no
     /// turning wheel rolls faster than its misalignment allows (module docs, "Where a wheel
     /// does not roll"). Returns the scale.
+    /// The angle of direction `a` (either branch: a or a + π) for wheel `i` nearest `from`:
+    /// the nearest of all for endless steering, the nearest inside its steering range
+    /// otherwise (`from` when neither branch has a turn inside).
+    fn branch_near(&self, i: usize, a: f64, from: f64) -> f64 {
+        match self.ranges[i] {
+            None => a + ((from - a) / PI).round() * PI,
+            Some(r) => match (r.nearest(a, from), r.nearest(a + PI, from)) {
+                (Some(x), Some(y)) => {
+                    if (x - from).abs() <= (y - from).abs() {
+                        x
+                    } else {
+                        y
+                    }
+                }
+                (Some(x), None) | (None, Some(x)) => x,
+                (None, None) => from,
+            },
+        }
+    }
+
+    /// Whether rolling wheel `i`'s direction, turning on from its angle as its contact
+    /// velocity goes from `u0` to `u1` (the short way round, as a line in twist space turns
+    /// it), would leave its steering range, kept [`RANGE_MARGIN`] inside its stops.
+    fn leaves_range(&self, i: usize, u0: [f64; 2], u1: [f64; 2]) -> bool {
+        let Some(r) = self.ranges[i] else {
+            return false;
+        };
+        if norm(u0) < TURN_SPEED || norm(u1) < TURN_SPEED {
+            return false;
+        }
+        let end = self.steer[i] + cross(u0, u1).atan2(dot(u0, u1));
+        end < r.min + RANGE_MARGIN || end > r.max - RANGE_MARGIN
+    }
+
     fn turning_scale(&mut self, g: &[f64; 3]) -> f64 {
         let mut k = 1.0f64;
         let legs = self.leg_velocity_ahead(g);
@@ -1208,27 +1272,40 @@ impl Shaper {
                 let psi = gi[1].atan2(gi[0]);
                 let cur = self.turn[i].target;
                 let a = self.steer[i];
-                let near = a + angle::diff(psi, a);
-                let other = a + angle::diff(psi + PI, a);
+                // The two branches' angles nearest the wheel's; with a steering range, the
+                // turns of them inside it (unwinding the long way round where the short one
+                // crosses a stop; module docs, "Steering ranges").
+                let (near, other) = match self.ranges[i] {
+                    None => (a + angle::diff(psi, a), a + angle::diff(psi + PI, a)),
+                    Some(r) => match (r.nearest(psi, a), r.nearest(psi + PI, a)) {
+                        (Some(x), Some(y)) => (x, y),
+                        (Some(x), None) | (None, Some(x)) => (x, x),
+                        (None, None) => (a, a),
+                    },
+                };
                 let (best, alt) = if (near - a).abs() <= (other - a).abs() {
                     (near, other)
                 } else {
                     (other, near)
                 };
-                let keep = angle::diff(alt, cur).abs() < angle::diff(best, cur).abs()
+                // Differences of angles: wrapped for endless steering, plain within a range
+                // (where +170° and −170° are 340° apart).
+                let ranged = self.ranges[i].is_some();
+                let d = |x: f64, y: f64| if ranged { x - y } else { angle::diff(x, y) };
+                let keep = d(alt, cur).abs() < d(best, cur).abs()
                     && (alt - a).abs() <= (best - a).abs() + self.cfg.flip_hysteresis;
                 let aim = if keep { alt } else { best };
                 // The goal's noise moves its direction at this wheel by about band/|g_i|:
                 // changes within that (or the alignment tolerance) keep the aim.
                 let allow = (self.band / gn).min(1.0).asin().min(MAX_NOISE_ANGLE);
                 let reaim = allow.max(self.cfg.align_tolerance);
-                if angle::diff(aim, cur).abs() > reaim {
+                if d(aim, cur).abs() > reaim {
                     self.turn[i].target = aim;
                 }
                 // Until the wheel has turned to within the tolerance of its aim it rolls only
                 // as fast as its misalignment from the goal's direction allows.
                 let delta = angle::diff(self.steer[i], aim).abs();
-                let to_go = angle::diff(self.steer[i], self.turn[i].target).abs();
+                let to_go = d(self.steer[i], self.turn[i].target).abs();
                 if to_go > self.cfg.align_tolerance {
                     let cap = (self.cfg.slip_speed / delta.sin().max(1e-9)).min(0.99 * HOLD_SPEED);
                     if gn > cap {
@@ -1560,6 +1637,9 @@ impl Shaper {
                 cross(u0, u1).atan2(dot(u0, u1)).abs()
             };
             far |= sweep > self.cfg.far_angle;
+            // A sweep that would turn a wheel past its steering stop: stop and turn it back
+            // within its range instead (module docs, "Steering ranges").
+            far |= sweep > 0.0 && self.leaves_range(i, u0, u1);
         }
         let zero = [0.0; 3];
         let (ramp, limit, crosses) = self.plan_line(&from, goal);
@@ -1743,6 +1823,14 @@ impl Shaper {
         ];
         let en = self.wheel_norm(&e);
         if en > TRACK_ERROR || (en == 0.0 && self.qdd[..3].iter().all(|a| *a == 0.0)) {
+            return false;
+        }
+        // A goal whose direction a rolling wheel could only follow past its steering stop
+        // is not tracked: the transition planned for it stops and unwinds the wheel.
+        if (0..self.n).any(|i| {
+            self.rolling[i]
+                && self.leaves_range(i, self.contact(i, &self.qd), self.contact_tw(i, goal))
+        }) {
             return false;
         }
         let prev = [self.qdd[0], self.qdd[1], self.qdd[2]];
@@ -1949,7 +2037,7 @@ impl Shaper {
                 // Rolls from here: what is left between the turning generator and the
                 // direction of travel (a fraction of a degree: turning wheels are kept
                 // slower until aligned) fades out smoothly.
-                let phi = a + ((self.steer[i] - a) / PI).round() * PI;
+                let phi = self.branch_near(i, a, self.steer[i]);
                 let (o0, o1, o2) = (
                     self.steer[i] - phi,
                     self.steer_rate[i] - r1,
@@ -1986,8 +2074,13 @@ impl Shaper {
                 let mut goal = self.turn[i].target;
                 if un > self.cfg.slip_speed {
                     let room = (self.cfg.slip_speed / un).asin();
-                    let dir = a + ((self.steer[i] - a) / PI).round() * PI;
-                    goal = dir + angle::diff(goal, dir).clamp(-room, room);
+                    let dir = self.branch_near(i, a, self.steer[i]);
+                    let off = if self.ranges[i].is_some() {
+                        goal - dir
+                    } else {
+                        angle::diff(goal, dir)
+                    };
+                    goal = dir + off.clamp(-room, room);
                 }
                 let (phi, r1, r2) = self.turn[i].step(goal, sr, sacc, self.dt, self.window);
                 self.steer[i] = phi;
