@@ -161,7 +161,7 @@
 //!
 //! So the planner adds stops (`range_stops`): walking each motion's grid from its start,
 //! it cuts at the last point up to which every ranged wheel's angles still fit on some
-//! branch, then repeats on the rest (at most [`MAX_RANGE_STOPS`] cuts). A cut lies where
+//! branch, then repeats on the rest (at most `MAX_RANGE_STOPS` = 256 cuts). A cut lies where
 //! the path moves, so the clock is brought to ṡ = 0 there (the piece ends at rest in
 //! executed time: its last grid point's ṡ bound is 0) and restarts from ṡ = 0 after it. Each
 //! piece is then put on the branch inside the range nearest where the wheel was (the first
