@@ -476,7 +476,7 @@ mod tests {
   fn fragment_assembler_rejects_span_beyond_total() {
     use enumflags2::BitFlags;
 
-    use super::FragmentAssembler;
+    use super::{FragmentAssembler, FragmentOutcome};
     use crate::messages::submessages::submessages::DATAFRAG_Flags;
 
     let frag_size = 256u16;
