@@ -304,6 +304,7 @@ pub(crate) fn selftest(a: SelftestArgs) -> Result<i32, CliError> {
         "services_enhanced": st.services_enhanced.load(Ordering::Relaxed),
         "qos_incompatible": st.qos_incompatible.load(Ordering::Relaxed),
         "undecodable": st.undecodable_by_endpoint(),
+        "oversized": st.oversized_by_endpoint(),
         "discovery_layout": st.announced_layout().map(|l| l.bytes()),
         "states_dropped_before_the_node": dropped_states,
         "cycles": k,

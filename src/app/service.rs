@@ -630,7 +630,7 @@ fn serve(
     if let Some(n) = node {
         let st = n.stats();
         tracing::info!(
-            "ROS 2 node: {} commands passed on ({} dropped, {} refused), {} messages published ({} failed), {} service calls ({} cyclone, {} enhanced mapping), undecodable samples {:?}, {} incompatible-QoS events, announced with {}",
+            "ROS 2 node: {} commands passed on ({} dropped, {} refused), {} messages published ({} failed), {} service calls ({} cyclone, {} enhanced mapping), undecodable samples {:?}, oversized samples dropped {:?}, {} incompatible-QoS events, announced with {}",
             st.commands_sent.load(Ordering::Relaxed),
             st.commands_dropped.load(Ordering::Relaxed),
             st.commands_refused.load(Ordering::Relaxed),
@@ -640,6 +640,7 @@ fn serve(
             st.services_cyclone.load(Ordering::Relaxed),
             st.services_enhanced.load(Ordering::Relaxed),
             st.undecodable_by_endpoint(),
+            st.oversized_by_endpoint(),
             st.qos_incompatible.load(Ordering::Relaxed),
             st.announced_layout()
                 .map_or("no discovery layout (no ROS 2 peer seen)".to_string(), |l| format!("the {l}")),

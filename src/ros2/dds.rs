@@ -48,30 +48,12 @@ pub mod qos {
 
     /// A reader that takes every publisher: best effort matches reliable and best-effort
     /// writers (a reliable reader matches only reliable ones); volatile matches volatile and
-    /// transient-local writers. Keep last 10.
+    /// transient-local writers. Keep last 10, and rustdds's topic cache bounded to those 10
+    /// samples (its default keeps 64): with samples of at most [`super::MAX_SAMPLE_BYTES`],
+    /// the cache holds at most 2.5 MiB whatever a publisher sends.
     pub fn any_publisher() -> QosPolicies {
         QosPolicyBuilder::new()
             .reliability(Reliability::BestEffort)
-            .durability(Durability::Volatile)
-            .history(History::KeepLast { depth: 10 })
-            .build()
-    }
-
-    /// Leg commands: reliable, volatile, keep last 10, and rustdds's topic cache bounded to
-    /// those 10 samples (its default keeps 64). Reliable, not best effort like `cmd_vel`: a
-    /// leg command too large for one datagram arrives in fragments, and rustdds keeps the
-    /// buffer of a best-effort sample that lost a fragment (the announced size, allocated at
-    /// the first fragment) until another fragmented sample reaches the same reader, which a
-    /// stream of normal leg commands never sends (issue 27, finding 8: three 32 MB leg
-    /// commands left 94 MB behind for good). A reliable reader has the writer repeat the
-    /// lost fragments, so the sample completes, reaches the node (which refuses it) and
-    /// leaves the cache once 10 newer samples replaced it. Best-effort leg publishers do not
-    /// match it: the node logs their incompatible QoS.
-    pub fn leg_commands() -> QosPolicies {
-        QosPolicyBuilder::new()
-            .reliability(Reliability::Reliable {
-                max_blocking_time: blocking(),
-            })
             .durability(Durability::Volatile)
             .history(History::KeepLast { depth: 10 })
             .resource_limits(ResourceLimits {
@@ -80,6 +62,18 @@ pub mod qos {
                 max_samples_per_instance: 10,
             })
             .build()
+    }
+
+    /// Leg commands: as `cmd_vel` ([`any_publisher`]), best effort, so that reliable and
+    /// best-effort publishers both match. Up to issue 26 this reader was reliable, because
+    /// rustdds 0.15.1 kept the reassembly buffer of a best-effort sample that lost a fragment
+    /// (allocated at the announced size at the first fragment) for good (issue 27, finding 8:
+    /// three 32 MB leg commands left 94 MB behind). The vendored rustdds
+    /// (vendor/rustdds/PATCHES.md) drops samples announcing more than
+    /// [`super::MAX_SAMPLE_BYTES`] before allocating, bounds and expires partial
+    /// reassemblies, and forgets a vanished writer's: a best-effort reader is bounded too.
+    pub fn leg_commands() -> QosPolicies {
+        any_publisher()
     }
 
     /// Latched: reliable, transient local, keep last 1 (`robot_description` as
@@ -94,6 +88,14 @@ pub mod qos {
             .build()
     }
 }
+
+/// The largest sample the vendored rustdds reassembles from fragments
+/// (`MAX_FRAGMENTED_SAMPLE_SIZE` in vendor/rustdds/src/rtps/fragment_assembler.rs; the same
+/// value): a larger one is dropped before anything is allocated and reported to its reader as
+/// `SampleLost`. A leg command for every wheel is under 1 KiB, a Twist 48 bytes; the largest
+/// samples a ROS 2 peer sends the node are `ros_discovery_info` announcements (about 0.8 KiB
+/// per node of the peer's process: 256 KiB is about 300 nodes in one process).
+pub const MAX_SAMPLE_BYTES: usize = 256 * 1024;
 
 /// The DDS topic of a ROS topic (`/odom` → `rt/odom`).
 pub fn topic_dds_name(absolute: &str) -> String {
@@ -388,26 +390,22 @@ mod tests {
     }
 
     #[test]
-    fn the_leg_reader_is_reliable_with_a_cache_of_its_depth() {
-        // Reliable (lost fragments of a large sample are repaired, issue 27 finding 8): a
-        // reliable writer matches, a best-effort one does not.
+    fn the_leg_reader_takes_every_publisher_with_a_cache_of_its_depth() {
+        // Best effort (issue 26: best-effort leg publishers move the legs too): reliable,
+        // best-effort and latched writers all match.
         let legs = qos::leg_commands();
+        assert_eq!(legs.reliability(), Some(Reliability::BestEffort));
         assert_eq!(qos::ros_default().compliance_failure_wrt(&legs), None);
         assert_eq!(qos::latched().compliance_failure_wrt(&legs), None);
         let be_writer = QosPolicyBuilder::new()
             .reliability(Reliability::BestEffort)
             .build();
-        assert_eq!(
-            be_writer.compliance_failure_wrt(&legs),
-            Some(rustdds::dds::qos::QosPolicyId::Reliability)
-        );
-        // rustdds's topic cache keeps max(max_samples, depth) samples (64 by default).
-        assert_eq!(legs.history(), Some(History::KeepLast { depth: 10 }));
-        assert_eq!(legs.resource_limits().map(|r| r.max_samples), Some(10));
-        // cmd_vel stays best effort: it takes both kinds of publishers.
-        assert_eq!(
-            qos::any_publisher().reliability(),
-            Some(Reliability::BestEffort)
-        );
+        assert_eq!(be_writer.compliance_failure_wrt(&legs), None);
+        // rustdds's topic cache keeps max(max_samples, depth) samples (64 by default): both
+        // command readers keep 10.
+        for q in [legs, qos::any_publisher()] {
+            assert_eq!(q.history(), Some(History::KeepLast { depth: 10 }));
+            assert_eq!(q.resource_limits().map(|r| r.max_samples), Some(10));
+        }
     }
 }

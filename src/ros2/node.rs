@@ -15,9 +15,9 @@
 //!   states, never delay a cycle.
 //!
 //! QoS (see docs/ros2.md): published topics and services reliable, volatile, keep last 10
-//! (ROS 2's defaults); the `cmd_vel` reader best effort (it matches reliable and best-effort
-//! publishers), the leg command reader reliable (see [`qos::leg_commands`], replaced after
-//! an oversized sample); `robot_description` and `ros_discovery_info` reliable, transient
+//! (ROS 2's defaults); the `cmd_vel` and leg command readers best effort (they match
+//! reliable and best-effort publishers; see [`qos::any_publisher`], [`qos::leg_commands`]);
+//! `robot_description` and `ros_discovery_info` reliable, transient
 //! local, keep last 1. A sample that does not decode, on any endpoint, is counted for that endpoint and
 //! logged the first time with the reason; an incompatible-QoS event is logged with the policy.
 //!
@@ -38,8 +38,8 @@ use futures::{FutureExt, StreamExt};
 use rollbase_control::runtime::CommandSender;
 use rollbase_control::service::ports::{BaseState, CommandEvent, CommandKind};
 use rustdds::{
-    DomainParticipantStatusEvent, QosPolicies, RTPSEntity, SampleIdentity, SequenceNumber,
-    StatusEvented, Timestamp, WriteOptionsBuilder, GUID,
+    DataReaderStatus, DomainParticipantStatusEvent, QosPolicies, RTPSEntity, SampleIdentity,
+    SequenceNumber, StatusEvented, Timestamp, WriteOptionsBuilder, GUID,
 };
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -75,6 +75,9 @@ pub struct NodeStats {
     pub qos_incompatible: AtomicU64,
     /// Undecodable samples per endpoint (`/cmd_vel`, `/rollbase/stop`, …).
     pub undecodable: Mutex<BTreeMap<String, u64>>,
+    /// Samples DDS dropped unread on a command endpoint (`/cmd_vel`, `/leg_commands`) because
+    /// they announced more than rustdds's fragment cap (256 KiB, vendor/rustdds/PATCHES.md).
+    pub oversized: Mutex<BTreeMap<String, u64>>,
     /// The `ros_discovery_info` layout announced (`None`: not yet known).
     pub discovery_layout: Mutex<Option<GidLayout>>,
 }
@@ -90,6 +93,11 @@ impl NodeStats {
             .lock()
             .map(|g| g.clone())
             .unwrap_or_default()
+    }
+
+    /// Oversized samples dropped per endpoint, as a copy.
+    pub fn oversized_by_endpoint(&self) -> BTreeMap<String, u64> {
+        self.oversized.lock().map(|g| g.clone()).unwrap_or_default()
     }
 
     /// The announced discovery layout.
@@ -320,8 +328,8 @@ pub fn spawn_node(
         None => None,
     };
 
-    // cmd_vel: a best-effort reader takes reliable and best-effort publishers alike; leg
-    // commands: reliable (see `qos::leg_commands`).
+    // cmd_vel and leg commands: a best-effort reader takes reliable and best-effort
+    // publishers alike (see `qos::leg_commands`).
     let vel_topic = opts.topic(&opts.cmd_vel_topic);
     let vel_type = if opts.cmd_vel_stamped {
         TwistStamped::DEF
@@ -404,9 +412,7 @@ pub fn spawn_node(
         names: eps.names,
         vel_topic,
         leg_topic,
-        legs_oversize_at: None,
-        legs_oversize_logged: false,
-        legs_taken: BTreeMap::new(),
+        logged_oversized: BTreeSet::new(),
         announcement: me,
         announce_w,
         layout: None,
@@ -502,17 +508,6 @@ fn qos_detail(offered: &QosPolicies, requested: &QosPolicies) -> String {
     }
 }
 
-/// The largest payload a valid leg command needs: [`rollbase_control::types::MAX_WHEELS`]
-/// entries of 8 bytes, with room for a `layout` of a few labelled dimensions.
-pub const LEG_COMMAND_MAX_BYTES: usize = 4096 + 8 * rollbase_control::types::MAX_WHEELS;
-
-/// How long after the last oversized leg command the leg reader is replaced (on the next leg
-/// command): the writer's repeats of that sample's fragments are over by then.
-const LEG_READER_REPLACE_AFTER: Duration = Duration::from_secs(1);
-
-/// Leg command writers whose last sequence number the node keeps.
-const MAX_LEG_WRITERS: usize = 256;
-
 struct CommandSide {
     cmd_tx: CommandSender,
     origin: Instant,
@@ -529,14 +524,8 @@ struct CommandSide {
     names: BTreeMap<GUID, String>,
     vel_topic: String,
     leg_topic: String,
-    /// When the last leg command larger than [`LEG_COMMAND_MAX_BYTES`] arrived (cleared when
-    /// the leg reader is replaced).
-    legs_oversize_at: Option<Instant>,
-    /// Whether an oversized leg command was logged (once per run).
-    legs_oversize_logged: bool,
-    /// The last sequence number taken per leg command writer: a new leg reader reads rustdds's
-    /// topic cache from its start, and must not pass on what the old one took.
-    legs_taken: BTreeMap<[u8; 16], i64>,
+    /// Endpoints whose first oversized sample was logged.
+    logged_oversized: BTreeSet<String>,
     announcement: ParticipantEntities,
     announce_w: RawWriter,
     layout: Option<GidLayout>,
@@ -653,52 +642,32 @@ impl CommandSide {
         }
     }
 
-    /// A leg command sample; `true` when the leg reader is to be replaced first.
-    ///
-    /// rustdds (0.15) reassembles a fragmented sample in a buffer of the announced size and
-    /// frees a buffer that never completes (a lost fragment, or a writer's late repeat of a
-    /// fragment of a sample already complete) only when another fragment reaches the same
-    /// reader, 10 s later — a stream of normal leg commands never sends one, so one 32 MB
-    /// leg command could leave 32 MB behind for good (issue 27, finding 8). Dropping the
-    /// reader frees them: after a leg command larger than any valid one, the first leg command
-    /// that comes [`LEG_READER_REPLACE_AFTER`] later replaces the reader (and is lost, like
-    /// the few that follow until the publishers match the new reader).
-    fn leg_reader_stale(&mut self, s: &dds::RawSample) -> bool {
-        if s.payload.len() > LEG_COMMAND_MAX_BYTES {
-            if !self.legs_oversize_logged {
-                self.legs_oversize_logged = true;
-                tracing::warn!(
-                    "ros2: {}: a leg command of {} bytes (a valid one needs at most {LEG_COMMAND_MAX_BYTES}); the command port refuses it; the leg reader will be replaced to release rustdds's fragment buffers (further ones are not logged; the run summary counts them as rejected commands)",
-                    self.leg_topic,
-                    s.payload.len()
-                );
-            }
-            self.legs_oversize_at = Some(Instant::now());
-            return false;
+    /// A status event of a command reader (`legs`: the leg reader): a sample that rustdds
+    /// dropped as larger than its fragment cap (`SampleLost`, which the vendored rustdds
+    /// reports for that alone) is counted for the endpoint and logged once per endpoint.
+    fn reader_status(&mut self, legs: bool, ev: DataReaderStatus) {
+        let DataReaderStatus::SampleLost { count } = ev else {
+            return;
+        };
+        let endpoint = if legs {
+            self.leg_topic.clone()
+        } else {
+            self.vel_topic.clone()
+        };
+        // The reader's running total (an event lost to a full status channel loses no count).
+        let total = u64::try_from(count.count()).unwrap_or(0);
+        if let Ok(mut g) = self.stats.oversized.lock() {
+            let c = g.entry(endpoint.clone()).or_insert(0);
+            let new = total.saturating_sub(*c);
+            *c = (*c).max(total);
+            self.stats.receive_errors.fetch_add(new, Ordering::Relaxed);
         }
-        matches!(self.legs_oversize_at, Some(t) if t.elapsed() >= LEG_READER_REPLACE_AFTER)
-    }
-
-    /// A leg command sample from the reader: passed on unless a reader since replaced took
-    /// it; `true` when the reader is to be replaced first (the sample is then left for the
-    /// new reader, which reads it from rustdds's topic cache).
-    fn leg_sample(&mut self, meta: &dds::SampleMeta, s: &dds::RawSample) -> bool {
-        if let Some(&sn) = self.legs_taken.get(&meta.writer_guid) {
-            if meta.sequence_number <= sn {
-                return false;
-            }
-        } else if self.legs_taken.len() >= MAX_LEG_WRITERS {
-            // Bounded: writers come and go; forgetting them risks only a repeat after a
-            // replacement.
-            self.legs_taken.clear();
+        if self.logged_oversized.insert(endpoint.clone()) {
+            tracing::warn!(
+                "ros2: {endpoint}: a publisher sent a sample larger than {} KiB (a command needs less than 1 KiB); DDS dropped it before reading it. Further ones on this endpoint are counted, not logged (the count is in the node's summary line)",
+                dds::MAX_SAMPLE_BYTES / 1024
+            );
         }
-        if self.leg_reader_stale(s) {
-            return true;
-        }
-        self.legs_taken
-            .insert(meta.writer_guid, meta.sequence_number);
-        self.command(true, s);
-        false
     }
 
     /// A velocity or leg command sample.
@@ -885,7 +854,7 @@ impl CommandSide {
         mut self,
         dds: Dds,
         cmd_vel: RawReader,
-        mut legs: RawReader,
+        legs: RawReader,
         services: Vec<ServiceEndpoints>,
         announcements: RawReader,
         wake: futures::channel::oneshot::Receiver<()>,
@@ -894,110 +863,70 @@ impl CommandSide {
         let listener = dds.participant().status_listener();
         let status_s = listener.as_async_status_stream().fuse();
         futures::pin_mut!(status_s);
-        'outer: loop {
-            // The streams borrow the readers: they end with this block.
-            {
-                let vel_s = cmd_vel.as_async_stream();
-                let legs_s = legs.as_async_stream();
-                // Every service's requests, tagged with the service's index.
-                let mut requests_s =
-                    futures::stream::select_all(services.iter().enumerate().map(|(i, srv)| {
-                        srv.requests
-                            .as_async_stream()
-                            .map(move |r| (i, r))
-                            .boxed_local()
-                    }));
-                let ann_s = announcements.as_async_stream();
-                futures::pin_mut!(vel_s, legs_s, ann_s);
-                loop {
-                    futures::select! {
-                        _ = wake => break 'outer,
-                        ev = status_s.next() => if let Some(ev) = ev {
-                            // Status events only inform; if they ever end, commands go on.
-                            self.status(ev);
-                        },
-                        v = vel_s.next() => match v {
-                            Some(Ok(dcc)) => self.command(false, &dcc.into_value()),
-                            Some(Err(e)) => {
-                                let ep = self.vel_topic.clone();
-                                self.undecodable(&ep, "velocity command", &e.to_string());
-                            }
-                            None => break 'outer,
-                        },
-                        l = legs_s.next() => match l {
-                            Some(Ok(dcc)) => {
-                                let meta = dds::sample_meta(&dcc);
-                                if self.leg_sample(&meta, &dcc.into_value()) {
-                                    break;
-                                }
-                            }
-                            Some(Err(e)) => {
-                                let ep = self.leg_topic.clone();
-                                self.undecodable(&ep, "leg command", &e.to_string());
-                            }
-                            None => break 'outer,
-                        },
-                        r = requests_s.next() => match r {
-                            Some((i, Ok(dcc))) => self.request(&services[i], dcc).await,
-                            Some((i, Err(e))) => {
-                                let ep = services[i].name.clone();
-                                self.undecodable(&ep, "service request", &e.to_string());
-                            }
-                            None => break 'outer,
-                        },
-                        a = ann_s.next() => match a {
-                            Some(Ok(dcc)) => {
-                                let meta = dds::sample_meta(&dcc);
-                                self.peer_announcement(&meta, &dcc.into_value());
-                            }
-                            // Not ours to count: a peer's discovery data, not a message to us.
-                            Some(Err(e)) => tracing::debug!("ros2: ros_discovery_info sample: {e}"),
-                            None => break 'outer,
-                        },
-                    }
+        // The streams borrow the readers: they end with this block.
+        {
+            let vel_s = cmd_vel.as_async_stream();
+            let legs_s = legs.as_async_stream();
+            // Every service's requests, tagged with the service's index.
+            let mut requests_s =
+                futures::stream::select_all(services.iter().enumerate().map(|(i, srv)| {
+                    srv.requests
+                        .as_async_stream()
+                        .map(move |r| (i, r))
+                        .boxed_local()
+                }));
+            let ann_s = announcements.as_async_stream();
+            let vel_st = cmd_vel.as_async_status_stream().fuse();
+            let legs_st = legs.as_async_status_stream().fuse();
+            futures::pin_mut!(vel_s, legs_s, ann_s, vel_st, legs_st);
+            'outer: loop {
+                futures::select! {
+                    _ = wake => break 'outer,
+                    ev = status_s.next() => if let Some(ev) = ev {
+                        // Status events only inform; if they ever end, commands go on.
+                        self.status(ev);
+                    },
+                    ev = vel_st.next() => if let Some(ev) = ev {
+                        self.reader_status(false, ev);
+                    },
+                    ev = legs_st.next() => if let Some(ev) = ev {
+                        self.reader_status(true, ev);
+                    },
+                    v = vel_s.next() => match v {
+                        Some(Ok(dcc)) => self.command(false, &dcc.into_value()),
+                        Some(Err(e)) => {
+                            let ep = self.vel_topic.clone();
+                            self.undecodable(&ep, "velocity command", &e.to_string());
+                        }
+                        None => break 'outer,
+                    },
+                    l = legs_s.next() => match l {
+                        Some(Ok(dcc)) => self.command(true, &dcc.into_value()),
+                        Some(Err(e)) => {
+                            let ep = self.leg_topic.clone();
+                            self.undecodable(&ep, "leg command", &e.to_string());
+                        }
+                        None => break 'outer,
+                    },
+                    r = requests_s.next() => match r {
+                        Some((i, Ok(dcc))) => self.request(&services[i], dcc).await,
+                        Some((i, Err(e))) => {
+                            let ep = services[i].name.clone();
+                            self.undecodable(&ep, "service request", &e.to_string());
+                        }
+                        None => break 'outer,
+                    },
+                    a = ann_s.next() => match a {
+                        Some(Ok(dcc)) => {
+                            let meta = dds::sample_meta(&dcc);
+                            self.peer_announcement(&meta, &dcc.into_value());
+                        }
+                        // Not ours to count: a peer's discovery data, not a message to us.
+                        Some(Err(e)) => tracing::debug!("ros2: ros_discovery_info sample: {e}"),
+                        None => break 'outer,
+                    },
                 }
             }
-            // The leg reader is replaced (see `leg_reader_stale`): the new one first, so the
-            // topic stays subscribed; a failure keeps the old one.
-            match dds.raw_reader(
-                &dds::topic_dds_name(&self.leg_topic),
-                &Float64MultiArray::DEF.dds_type_name(),
-                qos::leg_commands(),
-            ) {
-                Ok(r) => {
-                    self.names.remove(&legs.guid());
-                    self.names
-                        .insert(r.guid(), format!("subscription {}", self.leg_topic));
-                    let (old, new) = (legs.guid().to_bytes(), r.guid().to_bytes());
-                    for g in self
-                        .announcement
-                        .nodes
-                        .iter_mut()
-                        .flat_map(|n| &mut n.readers)
-                    {
-                        if *g == old {
-                            *g = new;
-                        }
-                    }
-                    legs = r;
-                    // `ros2 node info` lists the new subscription.
-                    if let Some(l) = self.layout {
-                        let bytes = discovery::encode(&self.announcement, l);
-                        if let Err(e) = self.announce_w.write(RawPayload(bytes), None) {
-                            tracing::warn!("ros2: announcing the node failed: {e:?}");
-                        }
-                    }
-                    tracing::info!(
-                        "ros2: {}: leg reader replaced (rustdds's fragment buffers of the oversized leg commands released)",
-                        self.leg_topic
-                    );
-                }
-                Err(e) => tracing::warn!(
-                    "ros2: {}: replacing the leg reader failed: {e}",
-                    self.leg_topic
-                ),
-            }
-            self.legs_oversize_at = None;
         }
         // Endpoints before their participant: rustdds reports an error for an endpoint
         // removed after its participant's event loop stopped.
