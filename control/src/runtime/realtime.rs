@@ -91,13 +91,23 @@ fn sleep_until(ns: i128) {
     }
 }
 
-/// Hands every frame waiting on `bus` to the core, stamped `t`; a non-retryable receive
+/// Hands every frame waiting on `bus` to the core, stamped `t`; a controller state change
+/// (error frame: warning, passive, bus-off, restarted) goes to the core
+/// ([`CycleCore::report_bus_event`]) and the drain goes on; another non-retryable receive
 /// error is reported to the core (bus-error fault) and ends the drain.
 fn drain(bus: &mut dyn CanBus, core: &mut CycleCore, t: f64, report: &mut RealtimeReport) {
     loop {
         match bus.try_recv() {
             Ok(Some(f)) => core.on_frame(&f.frame, t),
             Ok(None) => break,
+            Err(e) if e.bus_event().is_some() => {
+                if let Some(ev) = e.bus_event() {
+                    core.report_bus_event(0, ev);
+                    if ev == rollbase_driver::bus::BusEvent::BusOff {
+                        report.bus_errors += 1;
+                    }
+                }
+            }
             Err(e) if e.is_retryable() => break,
             Err(_) => {
                 core.report_bus_error();
@@ -118,7 +128,9 @@ fn send_all(
 ) {
     for f in out.as_slice() {
         if let Err(e) = bus.send(f) {
-            if !e.is_retryable() {
+            if let Some(ev) = e.bus_event() {
+                core.report_bus_event(0, ev);
+            } else if !e.is_retryable() {
                 core.report_bus_error();
                 report.bus_errors += 1;
             }
@@ -253,6 +265,11 @@ pub fn run_realtime_io(
         // cycle's samples). Then SYNC (and whatever else is due at the cycle start), one sleep
         // to the window's end, one drain: two wake-ups a cycle instead of one per frame (the
         // cycle waits for the window's end anyway).
+        // A re-arm after a bus-off: a fresh socket before the devices are booted again.
+        if core.take_reopen() && bus.reopen().is_err() {
+            core.report_bus_error();
+            report.bus_errors += 1;
+        }
         core.start_cycle(td, &mut out);
         drain(bus, core, td - 1e-6, &mut report);
         // What the late answers made due (CiA 402: a device's next SDO request) goes out
