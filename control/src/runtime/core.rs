@@ -845,13 +845,27 @@ impl CycleCore {
     /// answer just came; nothing natively). Returns how many were appended. Runtimes call it
     /// before they send `out`, so the SYNC still goes first.
     pub fn after_late_frames(&mut self, t: f64, out: &mut FrameBuf) -> usize {
-        let before = out.len();
-        self.link.service(t, std::slice::from_mut(out));
-        let added = out.len() - before;
-        for k in before..out.len() {
-            let f = out.as_slice()[k];
-            self.push_tx(t, &f);
+        self.after_late_frames_buses(t, std::slice::from_mut(out))
+    }
+
+    /// [`CycleCore::after_late_frames`] with one buffer per bus (as
+    /// [`CycleCore::start_cycle_buses`]): each bus's due frames go into its own buffer.
+    pub fn after_late_frames_buses(&mut self, t: f64, outs: &mut [FrameBuf]) -> usize {
+        let mut before = [0usize; MAX_BUSES];
+        for (b, o) in outs.iter().enumerate().take(MAX_BUSES) {
+            before[b] = o.len();
         }
+        self.link.service(t, outs);
+        let mut added = 0;
+        for (b, o) in outs.iter().enumerate().take(MAX_BUSES) {
+            self.cur_bus = b;
+            for k in before[b]..o.len() {
+                let f = o.as_slice()[k];
+                self.push_tx(t, &f);
+                added += 1;
+            }
+        }
+        self.cur_bus = 0;
         added
     }
 
