@@ -134,8 +134,13 @@ pub enum FaultReason {
         /// The limit (including margin).
         limit: f64,
     },
-    /// The bus reported an error (interface down, bus-off, socket error).
+    /// The bus reported an error (interface down, socket error).
     BusError,
+    /// The controller's CAN interface on this bus (`wheels[i].bus`) went bus-off.
+    BusOff {
+        /// The bus index.
+        bus: u8,
+    },
     /// The odometry slip residual stayed above threshold.
     Slip {
         /// Residual (m/s).
@@ -270,6 +275,15 @@ impl std::fmt::Display for FaultReason {
                 wheel + 1
             ),
             Self::BusError => write!(f, "bus error: the CAN interface reported an error"),
+            Self::BusOff { bus } => write!(
+                f,
+                "bus-off: the controller's CAN interface on bus {bus} went bus-off (too many \
+                 transmit errors); check the wiring and connectors, the termination (120 ohm \
+                 at both ends only), the bit rate of every node, and for a node that babbles \
+                 (a device sending error frames or flooding the bus); the drives stopped on \
+                 their communication-loss reaction; re-arm once the bus is back (the devices \
+                 are booted again)"
+            ),
             Self::Slip { residual } => {
                 write!(
                     f,
@@ -595,6 +609,8 @@ pub struct SupervisorInput {
     pub controller_singular: bool,
     /// The bus reported an error this cycle.
     pub bus_error: bool,
+    /// The controller's interface on this bus went bus-off (latched until re-armed).
+    pub bus_off: Option<u8>,
     /// Odometry slip residual (m/s).
     pub slip_residual: f64,
     /// An operator stop was requested (Ctrl-C): controlled stop, not a fault.
@@ -773,6 +789,9 @@ impl Supervisor {
 
     /// Checks the faults that apply in every active state; returns the first one found.
     fn detect_fault(&mut self, input: &SupervisorInput, p: &Platform) -> Option<FaultReason> {
+        if let Some(bus) = input.bus_off {
+            return Some(FaultReason::BusOff { bus });
+        }
         if input.bus_error {
             return Some(FaultReason::BusError);
         }

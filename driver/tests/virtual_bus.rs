@@ -415,3 +415,50 @@ fn async_recv_in_wall_mode_waits_for_a_delayed_frame() {
         );
     });
 }
+
+#[test]
+fn bus_off_node_reads_the_event_once_sends_fail_and_receives_nothing_until_restarted() {
+    use rollbase_driver::bus::{BusError, BusEvent};
+    let bus = VirtualBus::new(VirtualBusConfig::default());
+    let mut ctl = bus.node("controller");
+    let mut dev = bus.node("simulator");
+    dev.send(&frame(1)).expect("send");
+    bus.set_bus_off("controller", true);
+    // The error frame comes first (once), then what was already received.
+    let e = ctl.try_recv().expect_err("bus-off event");
+    assert!(
+        matches!(e, BusError::BusOff { .. }) && !e.is_retryable(),
+        "{e:?}"
+    );
+    assert_eq!(e.bus_event(), Some(BusEvent::BusOff));
+    assert_eq!(drain(&mut ctl).len(), 1);
+    // Bus-off: nothing goes out, nothing comes in.
+    let e = ctl.send(&frame(2)).expect_err("send while bus-off");
+    assert!(matches!(e, BusError::BusOff { .. }), "{e:?}");
+    assert!(drain(&mut dev).is_empty());
+    dev.send(&frame(3)).expect("others still send");
+    assert!(drain(&mut ctl).is_empty());
+    // Setting the same state again reports nothing new.
+    bus.set_bus_off("controller", true);
+    assert!(ctl.try_recv().expect("no second event").is_none());
+    // Restart: reported once, then traffic flows both ways.
+    bus.set_bus_off("controller", false);
+    let e = ctl.try_recv().expect_err("restart event");
+    assert_eq!(e.bus_event(), Some(BusEvent::Restarted));
+    assert!(e.is_retryable());
+    ctl.send(&frame(4)).expect("send after restart");
+    assert_eq!(drain(&mut dev).len(), 1);
+    dev.send(&frame(5)).expect("send");
+    assert_eq!(drain(&mut ctl).len(), 1);
+    // Warning and error passive are delivered as typed, retryable events.
+    bus.inject_event("controller", BusEvent::Warning);
+    bus.inject_event("controller", BusEvent::ErrorPassive);
+    for want in [BusEvent::Warning, BusEvent::ErrorPassive] {
+        let e = ctl.try_recv().expect_err("event");
+        assert!(
+            matches!(e, BusError::Controller { event, .. } if event == want),
+            "{e:?}"
+        );
+    }
+    assert!(ctl.try_recv().expect("no more").is_none());
+}

@@ -2,11 +2,13 @@
 //! the calling thread (a failed write stops the run in a controlled way), the in-process
 //! simulator of the demos, and the report.
 
+use rollbase_control::model::platform::MAX_BUSES;
 use rollbase_control::runtime::record::CycleRecord;
 use rollbase_control::runtime::{
     run_realtime_io, CommandReceiver, CycleCore, RealtimeIo, RealtimeOptions, RealtimeReport,
 };
-use rollbase_control::service::ports::BaseState;
+use rollbase_control::service::ports::{BaseState, CanBusDiagnostics};
+use rollbase_driver::bus::BusEvent;
 use rollbase_driver::bus::CanBus;
 use rollbase_vcan_sim::Simulator;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -119,9 +121,13 @@ pub(crate) fn run_cycle(
             }
         };
         let mut reported = false;
+        let mut bus_log = BusEventLog::default();
         loop {
             match poll_recv(&rx, Duration::from_millis(100)) {
                 Ok(r) => {
+                    for line in bus_log.update(r.t, &r.base.diagnostics.can) {
+                        tracing::warn!("{line}");
+                    }
                     sinks.take(&r, &r.wheel_xy[..r.n]);
                     if sinks.failed() && !reported {
                         reported = true;
@@ -142,6 +148,59 @@ pub(crate) fn run_cycle(
     })?;
     sinks.summary.deadline_misses = sinks.summary.deadline_misses.max(report.deadline_misses);
     Ok(report)
+}
+
+/// Logs the CAN controllers' error state changes (warning, error passive, bus-off,
+/// restarted) from the records' diagnostics: one line per change, at most one line per bus
+/// a second; changes in between are summed up in the next line.
+#[derive(Default)]
+pub(crate) struct BusEventLog {
+    seen: [CanBusDiagnostics; MAX_BUSES],
+    last_line: [Option<f64>; MAX_BUSES],
+    held: [u32; MAX_BUSES],
+}
+
+/// Shortest time between two bus-state log lines of one bus (s).
+const BUS_LOG_INTERVAL: f64 = 1.0;
+
+impl BusEventLog {
+    /// The lines to log for the diagnostics of a record at `t` (s).
+    pub(crate) fn update(&mut self, t: f64, can: &[CanBusDiagnostics]) -> Vec<String> {
+        let mut lines = Vec::new();
+        for (b, d) in can.iter().enumerate().take(MAX_BUSES) {
+            let total = |x: &CanBusDiagnostics| x.events.iter().map(|&n| u64::from(n)).sum::<u64>();
+            let new = total(d).saturating_sub(total(&self.seen[b]));
+            if new == 0 && self.held[b] == 0 {
+                continue;
+            }
+            self.held[b] = self.held[b].saturating_add(new.min(u64::from(u32::MAX)) as u32);
+            if self.last_line[b].is_some_and(|l| t - l < BUS_LOG_INTERVAL) {
+                continue;
+            }
+            let state = d.state.map_or("error active", |e| e.name());
+            let more = self.held[b].saturating_sub(1);
+            let mut line = format!(
+                "CAN bus {b}: controller {state} (bus-off {}, error passive {}, warning {}, restarted {} so far)",
+                d.count(BusEvent::BusOff),
+                d.count(BusEvent::ErrorPassive),
+                d.count(BusEvent::Warning),
+                d.count(BusEvent::Restarted),
+            );
+            if more > 0 {
+                line.push_str(&format!("; {more} earlier change(s) not logged separately"));
+            }
+            if d.state == Some(BusEvent::BusOff) {
+                line.push_str(
+                    ": check wiring, termination, bit rate and for a babbling node; the kernel restarts the interface with `ip link set IFACE type can restart-ms 100`; re-arm after it is back",
+                );
+            }
+            lines.push(line);
+            self.seen[b] = *d;
+            self.held[b] = 0;
+            self.last_line[b] = Some(t);
+        }
+        lines
+    }
 }
 
 /// The causes of an error, joined (for one log line).
@@ -253,4 +312,69 @@ pub(crate) fn wall_bus() -> (
         ..Default::default()
     });
     (vbus.node("controller"), vbus.node("simulator"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn diag(state: BusEvent, counts: &[(BusEvent, u32)]) -> [CanBusDiagnostics; MAX_BUSES] {
+        let mut d = [CanBusDiagnostics::default(); MAX_BUSES];
+        d[0].state = Some(state);
+        for &(e, n) in counts {
+            d[0].events[e.index()] = n;
+        }
+        d
+    }
+
+    #[test]
+    fn bus_state_changes_are_logged_once_and_at_most_once_a_second() {
+        let mut log = BusEventLog::default();
+        assert!(log
+            .update(0.0, &[CanBusDiagnostics::default(); MAX_BUSES])
+            .is_empty());
+        let w = diag(BusEvent::Warning, &[(BusEvent::Warning, 1)]);
+        let lines = log.update(1.0, &w);
+        assert_eq!(lines.len(), 1, "{lines:?}");
+        assert!(lines[0].contains("error warning"), "{lines:?}");
+        // The same state in every later record: nothing more.
+        for k in 1..500 {
+            assert!(log.update(1.0 + k as f64 * 0.004, &w).is_empty());
+        }
+        // A flapping bus: changes within the second are held and summed up.
+        let mut n = 1;
+        let mut lines = Vec::new();
+        for k in 0..250 {
+            n += 1;
+            let e = if k % 2 == 0 {
+                BusEvent::ErrorPassive
+            } else {
+                BusEvent::Warning
+            };
+            let d = diag(
+                e,
+                &[
+                    (BusEvent::Warning, n / 2),
+                    (BusEvent::ErrorPassive, n - n / 2),
+                ],
+            );
+            lines.extend(log.update(3.0 + k as f64 * 0.004, &d));
+        }
+        assert_eq!(lines.len(), 1, "one line a second at most: {lines:?}");
+        let d = diag(
+            BusEvent::BusOff,
+            &[
+                (BusEvent::BusOff, 1),
+                (BusEvent::Warning, n / 2),
+                (BusEvent::ErrorPassive, n - n / 2),
+            ],
+        );
+        let lines = log.update(4.5, &d);
+        assert_eq!(lines.len(), 1, "{lines:?}");
+        assert!(
+            lines[0].contains("bus-off 1") && lines[0].contains("restart-ms"),
+            "{lines:?}"
+        );
+        assert!(lines[0].contains("not logged separately"), "{lines:?}");
+    }
 }

@@ -333,6 +333,28 @@ impl DiagnosticsBuilder {
             values: vec![
                 kv("load", format!("{load:.4}")),
                 kv("deadline_misses", g.deadline_misses.to_string()),
+                kv(
+                    "controller_state",
+                    g.can[0].state.map_or("error active", |e| e.name()).into(),
+                ),
+                kv(
+                    "bus_off",
+                    g.can[0]
+                        .count(rollbase_driver::bus::BusEvent::BusOff)
+                        .to_string(),
+                ),
+                kv(
+                    "error_passive",
+                    g.can[0]
+                        .count(rollbase_driver::bus::BusEvent::ErrorPassive)
+                        .to_string(),
+                ),
+                kv(
+                    "error_warning",
+                    g.can[0]
+                        .count(rollbase_driver::bus::BusEvent::Warning)
+                        .to_string(),
+                ),
             ],
         });
         let c = &s.commands;

@@ -544,7 +544,8 @@ pub fn steering_turn_while_slow(records: &[CycleRecord], wheel_radius: f64, whee
 /// ([`Simulator::on_frame_on`]) and answer on it. `lose` = (bus, t): from `t` (s) on, that
 /// bus's medium carries nothing either way and reports no error (a cable cut behind the
 /// controller's transceiver). The cycle is
-/// `rollbase_control::runtime::lockstep_cycle`'s, bus by bus.
+/// `rollbase_control::runtime::lockstep_cycle`'s, bus by bus (late frames taken before the
+/// SYNC, [`CycleCore::after_late_frames_buses`]).
 pub fn run_buses(opts: &RunOptions, lose: Option<(usize, f64)>) -> RunOutcome {
     use rollbase_control::runtime::LockstepBus;
     use rollbase_driver::frame::{CanFrame, FrameBuf};
@@ -622,6 +623,20 @@ pub fn run_buses(opts: &RunOptions, lose: Option<(usize, f64)>) -> RunOutcome {
             m.set_time(t0);
         }
         core.start_cycle_buses(t0.as_secs_f64(), &mut outs[..nb]);
+        // What came in after the last window (late answers, the devices' answers to the
+        // requests sent at the end of the last cycle) is taken before the SYNC goes out, and
+        // what it made due goes out with the SYNC, as `lockstep_cycle` does on one bus.
+        rx.clear();
+        for (b, m) in media.iter_mut().enumerate() {
+            while let Ok(Some(f)) = m.controller_recv() {
+                rx.push((b, f.timestamp.as_secs_f64(), f.frame));
+            }
+        }
+        rx.sort_by(|a, b| a.1.total_cmp(&b.1));
+        for (b, t, f) in &rx {
+            core.on_frame_on(*b, f, *t);
+        }
+        core.after_late_frames_buses(t0.as_secs_f64(), &mut outs[..nb]);
         send(&mut core, &mut media, &outs, t0.as_secs_f64());
         deliver(&mut sim, &mut media);
         sim.advance_to(t_win);

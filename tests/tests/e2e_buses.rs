@@ -115,3 +115,44 @@ fn one_bus_lost_stops_the_whole_base() {
         }
     }
 }
+
+/// The cycle of the last NMT start before the supervisor armed (boot and configuration
+/// done; homing follows).
+fn configured_cycle(out: &RunOutcome) -> usize {
+    let armed = out
+        .records
+        .iter()
+        .position(|r| r.state != rollbase_control::supervisor::SupervisorState::Idle)
+        .expect("armed");
+    out.records[..=armed]
+        .iter()
+        .rposition(|r| {
+            r.tx[..r.n_tx]
+                .iter()
+                .any(|f| f.id == 0 && f.len == 2 && f.data[0] == 0x01)
+        })
+        .expect("NMT start")
+}
+
+/// Two CiA 402 buses boot as fast as one: the devices' SDO answers that arrive after the
+/// feedback window are taken before the next SYNC and the next request goes out with it
+/// (`CycleCore::after_late_frames_buses`), as on one bus — not one SDO request per cycle.
+#[test]
+fn two_cia402_buses_boot_as_fast_as_one() {
+    let one = rollbase_tests::run(&{
+        let mut o = RunOptions::new(Scenario::Seed000).cia402();
+        o.max_seconds = Some(3.0);
+        o
+    });
+    let mut o = opts(Protocol::Cia402);
+    o.max_seconds = Some(3.0);
+    let two = run_buses(&o, None);
+    let (c1, c2) = (configured_cycle(&one), configured_cycle(&two));
+    println!(
+        "configured: one bus (12 devices) {c1} cycles, two buses (9 devices each) {c2} cycles"
+    );
+    assert!(
+        c2 as f64 <= c1 as f64 * 1.1,
+        "two buses took {c2} cycles to configure, one bus {c1}"
+    );
+}

@@ -34,6 +34,10 @@
 //! at = 5.0
 //! until = 5.2
 //!
+//! [[controller_bus_off]]  # lockstep: the controller's CAN interface is bus-off in
+//! at = 6.0                # [at, until) (it reads the bus-off error frame, its sends fail,
+//! until = 6.5             # it receives nothing), then restarted (restart-ms)
+//!
 //! [[power_cycle]]     # CiA 402: the device loses power at `at` and boots again (an
 //! node = 4            # incremental steering counter restarts at 0 wherever the wheel is)
 //! at = 7.0
@@ -182,6 +186,9 @@ pub struct FaultSchedule {
     pub encoder_jump: Vec<EncoderJump>,
     /// Bus-off intervals.
     pub bus_off: Vec<BusOff>,
+    /// Intervals in which the controller's CAN interface is bus-off (lockstep runs: the
+    /// virtual bus puts the controller's node in bus-off and restarts it at `until`).
+    pub controller_bus_off: Vec<BusOff>,
     /// Rolling drives that weaken or die.
     pub drive_gain: Vec<DriveGain>,
     /// CiA 402 devices that lose power and boot again.
@@ -256,6 +263,7 @@ impl FaultSchedule {
             && self.encoder_stuck.is_empty()
             && self.encoder_jump.is_empty()
             && self.bus_off.is_empty()
+            && self.controller_bus_off.is_empty()
             && self.drive_gain.is_empty()
             && self.power_cycle.is_empty()
             && self.emcy.is_empty()
@@ -323,6 +331,17 @@ impl FaultSchedule {
             check_node(&format!("emcy[{i}].node"), m.node)?;
             check_time(&format!("emcy[{i}].at"), m.at)?;
         }
+        for (i, b) in self.controller_bus_off.iter().enumerate() {
+            check_time(&format!("controller_bus_off[{i}].at"), b.at)?;
+            check_time(&format!("controller_bus_off[{i}].until"), b.until)?;
+            if b.until <= b.at {
+                return Err(invalid(
+                    format!("controller_bus_off[{i}].until"),
+                    b.until,
+                    format!("must be later than at = {}", b.at),
+                ));
+            }
+        }
         for (i, b) in self.bus_off.iter().enumerate() {
             check_time(&format!("bus_off[{i}].at"), b.at)?;
             check_time(&format!("bus_off[{i}].until"), b.until)?;
@@ -384,6 +403,13 @@ impl FaultSchedule {
     /// Whether the bus is off at time `t` (s).
     pub fn is_bus_off(&self, t: f64) -> bool {
         self.bus_off.iter().any(|b| t >= b.at && t < b.until)
+    }
+
+    /// Whether the controller's interface is bus-off at time `t` (s).
+    pub fn is_controller_bus_off(&self, t: f64) -> bool {
+        self.controller_bus_off
+            .iter()
+            .any(|b| t >= b.at && t < b.until)
     }
 }
 

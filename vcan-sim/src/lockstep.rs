@@ -22,4 +22,7 @@ impl LockstepPeer for Simulator {
         let t = self.truth();
         Some((t.pose, t.legs))
     }
+    fn controller_bus_off(&self, now: Duration) -> bool {
+        self.is_controller_bus_off(now)
+    }
 }

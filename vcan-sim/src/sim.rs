@@ -453,6 +453,12 @@ impl Simulator {
         self.schedule.is_bus_off(secs(t))
     }
 
+    /// Whether the schedule holds the controller's interface bus-off at `t`
+    /// (`[[controller_bus_off]]`).
+    pub fn is_controller_bus_off(&self, t: Duration) -> bool {
+        self.schedule.is_controller_bus_off(secs(t))
+    }
+
     /// Counters.
     pub fn stats(&self) -> SimStats {
         let mut s = self.stats;

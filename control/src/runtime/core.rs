@@ -26,6 +26,7 @@ use crate::supervisor::{
 use crate::tracking::dfl::{alignment_command, ControlInput, DflController, TrackingController};
 use crate::tracking::kinematic::KinematicController;
 use crate::types::{Command, Measurement, ReferenceSample, Twist, MAX_WHEELS};
+use rollbase_driver::bus::BusEvent;
 use rollbase_driver::busload::frame_bits;
 use rollbase_driver::canopen::config::Role;
 use rollbase_driver::canopen::master::DeviceFault;
@@ -296,6 +297,12 @@ pub struct CycleCore {
     record: CycleRecord,
     stop_requested: bool,
     bus_error: bool,
+    /// The bus that went bus-off, latched until re-armed.
+    bus_off: Option<u8>,
+    /// A bus went bus-off since the last re-arm: the next re-arm asks the runtime to reopen
+    /// the interface ([`CycleCore::take_reopen`]).
+    reopen_after_rearm: bool,
+    reopen: bool,
     done_cycles: u32,
     controller_moved: bool,
     sync_time: f64,
@@ -490,6 +497,9 @@ impl CycleCore {
             record,
             stop_requested: false,
             bus_error: false,
+            bus_off: None,
+            reopen_after_rearm: false,
+            reopen: false,
             done_cycles: 0,
             controller_moved: false,
             sync_time: 0.0,
@@ -627,6 +637,10 @@ impl CycleCore {
         self.link.rearm(self.now);
         self.stop_requested = false;
         self.bus_error = false;
+        self.bus_off = None;
+        if std::mem::take(&mut self.reopen_after_rearm) {
+            self.reopen = true;
+        }
         self.done_cycles = 0;
         match &mut self.source {
             Source::Trajectory(s) => s.track_start_cycle = None,
@@ -665,9 +679,38 @@ impl CycleCore {
         }
     }
 
-    /// The bus reported an error (interface down, bus-off): fault and controlled stop.
+    /// The bus reported an error (interface down, socket error): fault and controlled stop.
     pub fn report_bus_error(&mut self) {
         self.bus_error = true;
+    }
+
+    /// The CAN controller of bus `bus` reported a change of its error state (an error
+    /// frame): counted per kind in the diagnostics ([`CanBusDiagnostics`](crate::service::ports::CanBusDiagnostics)) when it
+    /// changes the state (a repeated report, e.g. every failed send while bus-off, is not
+    /// counted). Bus-off faults the platform ([`FaultReason::BusOff`], latched until
+    /// re-armed), takes every CiA 402 device of that bus as lost ([`Link::bus_off`](crate::runtime::link::Link::bus_off): the
+    /// re-arm boots them again) and commands quick stop; the next re-arm also asks the
+    /// runtime to reopen the interface ([`CycleCore::take_reopen`]). The other states are
+    /// only counted and shown.
+    pub fn report_bus_event(&mut self, bus: usize, event: BusEvent) {
+        let b = bus.min(MAX_BUSES - 1);
+        let d = &mut self.state.diagnostics.can[b];
+        if d.state == Some(event) && event != BusEvent::Controller {
+            return;
+        }
+        d.state = Some(event);
+        d.events[event.index()] = d.events[event.index()].saturating_add(1);
+        if event == BusEvent::BusOff {
+            self.bus_off.get_or_insert(b as u8);
+            self.reopen_after_rearm = true;
+            self.link.bus_off(b);
+        }
+    }
+
+    /// True once after a re-arm that followed a bus-off: the runtime reopens the interface
+    /// (a fresh socket, [`CanBus::reopen`](rollbase_driver::bus::CanBus::reopen)) before the devices are booted again.
+    pub fn take_reopen(&mut self) -> bool {
+        std::mem::take(&mut self.reopen)
     }
 
     /// True once the platform has been at rest in Stopped, Fault or Idle (after a stop
@@ -821,13 +864,27 @@ impl CycleCore {
     /// answer just came; nothing natively). Returns how many were appended. Runtimes call it
     /// before they send `out`, so the SYNC still goes first.
     pub fn after_late_frames(&mut self, t: f64, out: &mut FrameBuf) -> usize {
-        let before = out.len();
-        self.link.service(t, std::slice::from_mut(out));
-        let added = out.len() - before;
-        for k in before..out.len() {
-            let f = out.as_slice()[k];
-            self.push_tx(t, &f);
+        self.after_late_frames_buses(t, std::slice::from_mut(out))
+    }
+
+    /// [`CycleCore::after_late_frames`] with one buffer per bus (as
+    /// [`CycleCore::start_cycle_buses`]): each bus's due frames go into its own buffer.
+    pub fn after_late_frames_buses(&mut self, t: f64, outs: &mut [FrameBuf]) -> usize {
+        let mut before = [0usize; MAX_BUSES];
+        for (b, o) in outs.iter().enumerate().take(MAX_BUSES) {
+            before[b] = o.len();
         }
+        self.link.service(t, outs);
+        let mut added = 0;
+        for (b, o) in outs.iter().enumerate().take(MAX_BUSES) {
+            self.cur_bus = b;
+            for k in before[b]..o.len() {
+                let f = o.as_slice()[k];
+                self.push_tx(t, &f);
+                added += 1;
+            }
+        }
+        self.cur_bus = 0;
         added
     }
 
@@ -1120,7 +1177,11 @@ impl CycleCore {
             && state_before != SupervisorState::Fault
             && matches!(
                 self.sup.reason(),
-                Some(FaultReason::StaleFeedback { .. } | FaultReason::BusError)
+                Some(
+                    FaultReason::StaleFeedback { .. }
+                        | FaultReason::BusError
+                        | FaultReason::BusOff { .. }
+                )
             )
         {
             self.link.quick_stop();
@@ -1428,6 +1489,7 @@ impl CycleCore {
             alignment_error: if reported { align_err } else { f64::INFINITY },
             start_legs,
             bus_error: self.bus_error,
+            bus_off: self.bus_off,
             slip_residual: odo.residual,
             stop_requested,
             ..Default::default()

@@ -949,6 +949,13 @@ impl Buses {
         }
     }
 
+    /// [`Link::bus_off`] on bus `b` (the interface that went bus-off).
+    pub fn bus_off(&mut self, b: usize) {
+        if let Some(l) = self.links.get_mut(b) {
+            l.bus_off();
+        }
+    }
+
     /// The CiA 402 master of wheel `i`'s bus, and the wheel's index on that bus.
     pub fn master_of_wheel(&self, i: usize) -> Option<(&Master, usize)> {
         let (b, k) = *self.local.get(i)?;

@@ -21,6 +21,12 @@ pub trait LockstepPeer {
     fn truth(&self) -> Option<(Pose, [f64; MAX_WHEELS])> {
         None
     }
+    /// True while the peer's fault schedule holds the controller's CAN interface bus-off
+    /// at `now` ([`LockstepBus::set_controller_bus_off`]).
+    fn controller_bus_off(&self, now: Duration) -> bool {
+        let _ = now;
+        false
+    }
 }
 
 /// The lockstep bus: what [`run_lockstep`] needs from the in-process virtual bus.
@@ -35,6 +41,12 @@ pub trait LockstepBus {
     fn peer_send(&mut self, f: &CanFrame) -> Result<(), BusError>;
     /// Receives at the simulator's node (non-blocking).
     fn peer_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError>;
+    /// Puts the controller's CAN interface in bus-off (`true`) or restarts it (`false`);
+    /// each change reaches the controller once, as an error frame. A bus without this
+    /// ability ignores it.
+    fn set_controller_bus_off(&mut self, off: bool) {
+        let _ = off;
+    }
 }
 
 /// The in-process virtual bus on a virtual clock with a controller node and a simulator node.
@@ -82,6 +94,9 @@ impl LockstepBus for VirtualLockstepBus {
     }
     fn peer_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError> {
         self.peer.try_recv()
+    }
+    fn set_controller_bus_off(&mut self, off: bool) {
+        self.bus.set_bus_off(self.controller.name(), off);
     }
 }
 
@@ -216,10 +231,36 @@ fn receive(
                 }
             }
             Ok(None) => break,
+            // A controller state change (error frame): counted, and on bus-off a fault; the
+            // frames behind it are still read.
+            Err(e) if e.bus_event().is_some() => {
+                if let Some(ev) = e.bus_event() {
+                    core.report_bus_event(0, ev);
+                }
+            }
             Err(_) => {
                 core.report_bus_error();
                 break;
             }
+        }
+    }
+}
+
+/// Sends `st.out` from the controller: a bus-off send failure is the bus-off state (already
+/// reported by its error frame; reported again, not counted twice), any other failure a bus
+/// error.
+fn send_out(st: &LockstepState, core: &mut CycleCore, bus: &mut dyn LockstepBus, down: bool) {
+    for f in st.out.as_slice() {
+        if down {
+            core.report_bus_error();
+            continue;
+        }
+        match bus.controller_send(f) {
+            Ok(()) => {}
+            Err(e) => match e.bus_event() {
+                Some(ev) => core.report_bus_event(0, ev),
+                None => core.report_bus_error(),
+            },
         }
     }
 }
@@ -255,6 +296,7 @@ pub fn lockstep_cycle(
     };
     let t_win = Duration::from_secs_f64(k as f64 * st.period + delay + st.window);
     peer.advance_to(t_sync);
+    bus.set_controller_bus_off(peer.controller_bus_off(t_sync));
     let truth_at_sync = peer.truth();
     st.flush_peer(bus, peer, t_sync);
     bus.set_time(t_sync);
@@ -285,11 +327,7 @@ pub fn lockstep_cycle(
         }
         core.after_late_frames(t0.as_secs_f64(), &mut st.out);
         around(false);
-        for f in st.out.as_slice() {
-            if hooks.iface_down || bus.controller_send(f).is_err() {
-                core.report_bus_error();
-            }
-        }
+        send_out(st, core, bus, hooks.iface_down);
     }
     deliver_to_peer(bus, peer);
     peer.advance_to(t_win);
@@ -314,11 +352,7 @@ pub fn lockstep_cycle(
     }
     core.finish_cycle(t_win.as_secs_f64(), &mut st.out);
     around(false);
-    for f in st.out.as_slice() {
-        if hooks.iface_down || bus.controller_send(f).is_err() {
-            core.report_bus_error();
-        }
-    }
+    send_out(st, core, bus, hooks.iface_down);
     deliver_to_peer(bus, peer);
     let rec = core.record_mut();
     rec.truth = truth_at_sync;

@@ -91,13 +91,23 @@ fn sleep_until(ns: i128) {
     }
 }
 
-/// Hands every frame waiting on `bus` to the core, stamped `t`; a non-retryable receive
+/// Hands every frame waiting on `bus` to the core, stamped `t`; a controller state change
+/// (error frame: warning, passive, bus-off, restarted) goes to the core
+/// ([`CycleCore::report_bus_event`]) and the drain goes on; another non-retryable receive
 /// error is reported to the core (bus-error fault) and ends the drain.
 fn drain(bus: &mut dyn CanBus, core: &mut CycleCore, t: f64, report: &mut RealtimeReport) {
     loop {
         match bus.try_recv() {
             Ok(Some(f)) => core.on_frame(&f.frame, t),
             Ok(None) => break,
+            Err(e) if e.bus_event().is_some() => {
+                if let Some(ev) = e.bus_event() {
+                    core.report_bus_event(0, ev);
+                    if ev == rollbase_driver::bus::BusEvent::BusOff {
+                        report.bus_errors += 1;
+                    }
+                }
+            }
             Err(e) if e.is_retryable() => break,
             Err(_) => {
                 core.report_bus_error();
@@ -118,7 +128,9 @@ fn send_all(
 ) {
     for f in out.as_slice() {
         if let Err(e) = bus.send(f) {
-            if !e.is_retryable() {
+            if let Some(ev) = e.bus_event() {
+                core.report_bus_event(0, ev);
+            } else if !e.is_retryable() {
                 core.report_bus_error();
                 report.bus_errors += 1;
             }
@@ -253,6 +265,11 @@ pub fn run_realtime_io(
         // cycle's samples). Then SYNC (and whatever else is due at the cycle start), one sleep
         // to the window's end, one drain: two wake-ups a cycle instead of one per frame (the
         // cycle waits for the window's end anyway).
+        // A re-arm after a bus-off: a fresh socket before the devices are booted again.
+        if core.take_reopen() && bus.reopen().is_err() {
+            core.report_bus_error();
+            report.bus_errors += 1;
+        }
         core.start_cycle(td, &mut out);
         drain(bus, core, td - 1e-6, &mut report);
         // What the late answers made due (CiA 402: a device's next SDO request) goes out
@@ -343,4 +360,90 @@ pub fn run_realtime_io(
         }
     }
     report
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::platform::Platform;
+    use crate::runtime::command_channel::command_channel;
+    use crate::runtime::RuntimeConfig;
+    use crate::service::ports::{CommandEvent, CommandKind};
+    use rollbase_driver::bus::{BusError, BusEvent};
+    use rollbase_driver::frame::{CanFrame, TimestampedFrame};
+    use std::sync::atomic::AtomicU32;
+    use std::sync::Arc;
+    use std::time::Instant;
+
+    /// A bus whose controller goes bus-off at the first receive; counts `reopen` calls.
+    struct OffOnce {
+        told: bool,
+        reopened: Arc<AtomicU32>,
+    }
+
+    impl CanBus for OffOnce {
+        fn send(&mut self, _: &CanFrame) -> Result<(), BusError> {
+            Ok(())
+        }
+        fn try_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError> {
+            if !self.told {
+                self.told = true;
+                return Err(BusError::BusOff {
+                    iface: "can9".into(),
+                });
+            }
+            Ok(None)
+        }
+        fn recv_until(&mut self, _: Instant) -> Result<Option<TimestampedFrame>, BusError> {
+            self.try_recv()
+        }
+        fn name(&self) -> &str {
+            "can9"
+        }
+        fn reopen(&mut self) -> Result<(), BusError> {
+            self.reopened.fetch_add(1, Ordering::SeqCst);
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn bus_off_faults_and_the_re_arm_reopens_the_interface_once() {
+        let mut core =
+            CycleCore::new_live(Platform::justin(), RuntimeConfig::default()).expect("core");
+        let reopened = Arc::new(AtomicU32::new(0));
+        let mut bus = OffOnce {
+            told: false,
+            reopened: Arc::clone(&reopened),
+        };
+        let (tx, rx) = command_channel(16, 16);
+        let stop = AtomicBool::new(false);
+        let opts = RealtimeOptions {
+            fifo_priority: None,
+            lock_memory: false,
+            max_cycles: Some(100),
+        };
+        let report = std::thread::scope(|s| {
+            s.spawn(|| {
+                // Well after the fault (first cycle); the cycle takes it when it comes.
+                std::thread::sleep(std::time::Duration::from_millis(100));
+                let _ = tx.try_send(CommandEvent {
+                    t: 0.0,
+                    kind: CommandKind::Rearm,
+                });
+            });
+            let io = RealtimeIo {
+                commands: Some(&rx),
+                ..Default::default()
+            };
+            run_realtime_io(&mut core, &mut bus, &stop, &io, &opts, 0)
+        });
+        assert_eq!(report.bus_errors, 1, "{report:?}");
+        assert_eq!(
+            reopened.load(Ordering::SeqCst),
+            1,
+            "reopened once, after the re-arm"
+        );
+        let d = core.base_state().diagnostics.can[0];
+        assert_eq!(d.count(BusEvent::BusOff), 1, "{d:?}");
+    }
 }

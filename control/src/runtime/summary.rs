@@ -65,6 +65,9 @@ pub struct RunSummary {
     /// The pose estimate (odometry) of the last cycle: where the platform ended up, as the
     /// driver knows it (`None` before the first cycle).
     pub final_pose: Option<crate::types::Pose>,
+    /// Per bus, the CAN controller's error state changes seen (warning, error passive,
+    /// bus-off, restarts) and its last state.
+    pub can: [crate::service::ports::CanBusDiagnostics; crate::model::platform::MAX_BUSES],
     prev: Option<PrevCycle>,
     stop_started: Option<f64>,
 }
@@ -169,6 +172,7 @@ impl RunSummary {
         self.rejected_commands = r.commands.rejected;
         self.ignored_commands = r.commands.ignored;
         self.dropped_commands = r.commands.dropped;
+        self.can = r.base.diagnostics.can;
         let halted = matches!(
             r.shaping.limiting,
             crate::service::ports::Limiting::Timeout | crate::service::ports::Limiting::Stop
@@ -336,6 +340,14 @@ impl RunSummary {
             "final_pose": self.final_pose.map(|p| serde_json::json!({
                 "x": f(p.x), "y": f(p.y), "theta": f(p.theta),
             })),
+            "can_bus": self.can.iter().map(|d| {
+                let mut m = serde_json::Map::new();
+                for e in rollbase_driver::bus::BusEvent::ALL {
+                    m.insert(e.name().replace([' ', '-'], "_"), serde_json::json!(d.count(e)));
+                }
+                m.insert("state".into(), serde_json::json!(d.state.map_or("error active", |e| e.name())));
+                serde_json::Value::Object(m)
+            }).collect::<Vec<_>>(),
             "time_scale_limit": self.timing.and_then(|t| {
                 (t.limiting != crate::service::ports::Limiting::None)
                     .then(|| format!("wheel {} {}", t.wheel + 1, t.limiting.name()))

@@ -161,6 +161,26 @@ pub struct ModuleDiagnostics {
     pub emcy: [EmcyEntry; EMCY_KEPT],
 }
 
+/// The CAN controller of one bus, as its error frames report it (SocketCAN, socketcand, the
+/// virtual bus): the current error state and how often each state change was seen.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CanBusDiagnostics {
+    /// The last error state reported (`None`: error active, nothing reported yet; after a
+    /// restart `Some(Restarted)`).
+    pub state: Option<rollbase_driver::bus::BusEvent>,
+    /// State changes seen, per kind ([`rollbase_driver::bus::BusEvent::index`]: warning,
+    /// error passive, active, bus-off, restarted, controller problem). A repeated report of
+    /// the state the controller is already in is not counted.
+    pub events: [u32; 6],
+}
+
+impl CanBusDiagnostics {
+    /// Times the given kind of state change was seen.
+    pub fn count(&self, e: rollbase_driver::bus::BusEvent) -> u32 {
+        self.events[e.index()]
+    }
+}
+
 /// Diagnostics of the bus and the modules.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Diagnostics {
@@ -173,6 +193,8 @@ pub struct Diagnostics {
     pub bus_loads: [f64; crate::model::platform::MAX_BUSES],
     /// Cycles whose control step finished after the next cycle's deadline (real time).
     pub deadline_misses: u64,
+    /// Per bus (`wheels[i].bus`), its CAN controller's error state and state changes.
+    pub can: [CanBusDiagnostics; crate::model::platform::MAX_BUSES],
 }
 
 /// Why the shaper is moving slower than commanded, if it is.

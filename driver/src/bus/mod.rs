@@ -16,6 +16,107 @@ pub mod virtual_bus;
 
 pub use virtual_bus::{BusClock, BusStats, VirtualBus, VirtualBusConfig, VirtualNode};
 
+/// A change of the controller's CAN error state, as the interface reports it in an error
+/// frame (Linux `include/uapi/linux/can/error.h`: the error class `CAN_ERR_CRTL` with
+/// `data[1]` = `CAN_ERR_CRTL_{RX,TX}_{WARNING,PASSIVE}` or `CAN_ERR_CRTL_ACTIVE`,
+/// `CAN_ERR_BUSOFF`, `CAN_ERR_RESTARTED`). The error counters of ISO 11898-1 decide the
+/// state: warning at 96, error-passive at 128, bus-off above 255 transmit errors.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum BusEvent {
+    /// An error counter reached the warning level (96): the bus is noisy, frames still flow.
+    Warning,
+    /// An error counter reached the error-passive level (128): the controller no longer
+    /// signals errors it sees; the bus is close to failing.
+    ErrorPassive,
+    /// The controller is back to error active (counters below 128 again).
+    Active,
+    /// The controller went bus-off (transmit error counter above 255): it neither sends nor
+    /// receives until it is restarted.
+    BusOff,
+    /// The controller was restarted after a bus-off (the kernel's `restart-ms`, or
+    /// `ip link set … type can restart`).
+    Restarted,
+    /// A controller problem whose level the report does not say (a socketcand
+    /// `< error 004 … >` carries only the error class, not `data[1]`).
+    Controller,
+}
+
+impl BusEvent {
+    /// Every kind, in the order of [`BusEvent::index`].
+    pub const ALL: [BusEvent; 6] = [
+        BusEvent::Warning,
+        BusEvent::ErrorPassive,
+        BusEvent::Active,
+        BusEvent::BusOff,
+        BusEvent::Restarted,
+        BusEvent::Controller,
+    ];
+
+    /// Position in [`BusEvent::ALL`] (for per-kind counters).
+    pub fn index(self) -> usize {
+        match self {
+            BusEvent::Warning => 0,
+            BusEvent::ErrorPassive => 1,
+            BusEvent::Active => 2,
+            BusEvent::BusOff => 3,
+            BusEvent::Restarted => 4,
+            BusEvent::Controller => 5,
+        }
+    }
+
+    /// Short name for logs and diagnostics.
+    pub fn name(self) -> &'static str {
+        match self {
+            BusEvent::Warning => "error warning",
+            BusEvent::ErrorPassive => "error passive",
+            BusEvent::Active => "error active",
+            BusEvent::BusOff => "bus-off",
+            BusEvent::Restarted => "restarted",
+            BusEvent::Controller => "controller problem",
+        }
+    }
+
+    /// Decodes a CAN error frame: `class` is its identifier without the error flag (the
+    /// error class bits), `data` its payload (may be empty when only the class is known).
+    /// `None` for error frames that are not a controller state change (lost arbitration,
+    /// protocol violations, missing ACK, transceiver errors, TX timeout).
+    ///
+    /// Bit values from Linux `include/uapi/linux/can/error.h`: `CAN_ERR_CRTL` 0x004,
+    /// `CAN_ERR_BUSOFF` 0x040, `CAN_ERR_RESTARTED` 0x100; `data[1]` of a controller
+    /// problem: `RX_WARNING` 0x04, `TX_WARNING` 0x08, `RX_PASSIVE` 0x10, `TX_PASSIVE` 0x20,
+    /// `ACTIVE` 0x40. Bus-off wins over the others in one frame (it is the worst state).
+    pub fn from_error_frame(class: u32, data: &[u8]) -> Option<BusEvent> {
+        const ERR_CRTL: u32 = 0x004;
+        const ERR_BUSOFF: u32 = 0x040;
+        const ERR_RESTARTED: u32 = 0x100;
+        const CRTL_WARNING: u8 = 0x04 | 0x08;
+        const CRTL_PASSIVE: u8 = 0x10 | 0x20;
+        const CRTL_ACTIVE: u8 = 0x40;
+        if class & ERR_BUSOFF != 0 {
+            return Some(BusEvent::BusOff);
+        }
+        if class & ERR_RESTARTED != 0 {
+            return Some(BusEvent::Restarted);
+        }
+        if class & ERR_CRTL != 0 {
+            return Some(match data.get(1).copied() {
+                Some(d) if d & CRTL_PASSIVE != 0 => BusEvent::ErrorPassive,
+                Some(d) if d & CRTL_WARNING != 0 => BusEvent::Warning,
+                Some(d) if d & CRTL_ACTIVE != 0 => BusEvent::Active,
+                Some(_) => return None,
+                None => BusEvent::Controller,
+            });
+        }
+        None
+    }
+}
+
+impl std::fmt::Display for BusEvent {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// Why a bus operation failed.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum BusError {
@@ -54,10 +155,19 @@ pub enum BusError {
         iface: String,
     },
     /// The CAN controller went bus-off (too many transmit errors).
-    #[error("{iface}: CAN controller is bus-off; check wiring, termination and bit rate, then restart the interface (`sudo ip link set {iface} type can restart-ms 100`)")]
+    #[error("{iface}: CAN controller is bus-off; check wiring, termination (120 ohm at both ends), the bit rate of every node and for a node that babbles; let the kernel restart the interface (`sudo ip link set {iface} type can restart-ms 100`), then re-arm")]
     BusOff {
         /// Interface name.
         iface: String,
+    },
+    /// The controller's error state changed without stopping the bus (warning, error
+    /// passive, back to active, restarted): a typed event, not lost data.
+    #[error("{iface}: CAN controller {event} (error frame)")]
+    Controller {
+        /// Interface name.
+        iface: String,
+        /// The state change.
+        event: BusEvent,
     },
     /// The controller reported a problem that does not stop the bus (error frame:
     /// warning/passive level, lost arbitration, protocol violation, missing ACK, ...).
@@ -104,6 +214,7 @@ impl BusError {
         match self {
             BusError::WouldBlock { .. }
             | BusError::QueueFull { .. }
+            | BusError::Controller { .. }
             | BusError::ErrorFrame { .. } => true,
             BusError::Io { errno, .. } => matches!(
                 *errno,
@@ -115,6 +226,19 @@ impl BusError {
             | BusError::BusOff { .. }
             | BusError::InvalidName { .. }
             | BusError::Closed { .. } => false,
+        }
+    }
+}
+
+impl BusError {
+    /// The controller state change this error reports, if it is one (bus-off, warning,
+    /// error passive, active again, restarted): the runtime counts and logs these, and
+    /// faults on bus-off.
+    pub fn bus_event(&self) -> Option<BusEvent> {
+        match self {
+            BusError::BusOff { .. } => Some(BusEvent::BusOff),
+            BusError::Controller { event, .. } => Some(*event),
+            _ => None,
         }
     }
 }
@@ -132,6 +256,12 @@ pub trait CanBus: Send {
     fn recv_until(&mut self, deadline: Instant) -> Result<Option<TimestampedFrame>, BusError>;
     /// Interface or node name.
     fn name(&self) -> &str;
+    /// Opens the connection to the interface again (after a bus-off: a fresh socket has no
+    /// stale queued frames and error state). Backends without a connection of their own do
+    /// nothing.
+    fn reopen(&mut self) -> Result<(), BusError> {
+        Ok(())
+    }
 }
 
 impl<B: CanBus + ?Sized> CanBus for Box<B> {
@@ -146,6 +276,9 @@ impl<B: CanBus + ?Sized> CanBus for Box<B> {
     }
     fn name(&self) -> &str {
         (**self).name()
+    }
+    fn reopen(&mut self) -> Result<(), BusError> {
+        (**self).reopen()
     }
 }
 

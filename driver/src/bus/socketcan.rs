@@ -9,8 +9,12 @@
 //! By default the socket receives every standard-format (11-bit) data frame; extended-id and
 //! remote frames are filtered out in the kernel (rollbase uses neither), CAN FD frames are
 //! not enabled. Error frames for bus-off, controller problems, TX timeouts and restarts are
-//! enabled and mapped to [`BusError::BusOff`] (not retryable) and [`BusError::ErrorFrame`]
-//! (retryable). [`SocketCanBus::set_filters`] narrows reception, e.g. to
+//! enabled and decoded ([`BusEvent::from_error_frame`]): bus-off is [`BusError::BusOff`]
+//! (not retryable), a controller state change (warning, error passive, active again,
+//! restarted) the retryable [`BusError::Controller`] with its [`BusEvent`], anything else the
+//! retryable [`BusError::ErrorFrame`]. After a bus-off, [`CanBus::reopen`] opens a fresh
+//! socket (the interface itself is restarted by the kernel's `restart-ms`, which needs
+//! CAP_NET_ADMIN to set and is not done by the process). [`SocketCanBus::set_filters`] narrows reception, e.g. to
 //! [`protocol_filters`].
 //!
 //! [`AsyncSocketCanBus`] is the tokio face (socketcan's `tokio::CanSocket`).
@@ -20,9 +24,10 @@ use std::os::fd::AsRawFd;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use libc::{CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED, CAN_ERR_TX_TIMEOUT};
+
 use socketcan::{CanFilter, EmbeddedFrame, Id, Socket, SocketOptions, StandardId};
 
-use super::{AsyncCanBus, BusError, CanBus};
+use super::{AsyncCanBus, BusError, BusEvent, CanBus};
 use crate::frame::{CanFrame, TimestampedFrame};
 use crate::protocol::{MessageKind, MESSAGES};
 
@@ -183,15 +188,18 @@ fn from_socketcan(
         },
         socketcan::CanFrame::Remote(_) => Ok(None),
         socketcan::CanFrame::Error(e) => {
-            if e.error_bits() & CAN_ERR_BUSOFF != 0 {
-                Err(BusError::BusOff {
+            match BusEvent::from_error_frame(e.error_bits(), e.data()) {
+                Some(BusEvent::BusOff) => Err(BusError::BusOff {
                     iface: iface.to_string(),
-                })
-            } else {
-                Err(BusError::ErrorFrame {
+                }),
+                Some(event) => Err(BusError::Controller {
+                    iface: iface.to_string(),
+                    event,
+                }),
+                None => Err(BusError::ErrorFrame {
                     iface: iface.to_string(),
                     detail: e.into_error().to_string(),
-                })
+                }),
             }
         }
     }
@@ -309,6 +317,12 @@ impl CanBus for SocketCanBus {
 
     fn name(&self) -> &str {
         &self.iface
+    }
+
+    fn reopen(&mut self) -> Result<(), BusError> {
+        let fresh = SocketCanBus::open(&self.iface)?;
+        self.sock = fresh.sock;
+        Ok(())
     }
 }
 
@@ -452,12 +466,33 @@ mod tests {
         let busoff = socketcan::CanErrorFrame::new_error(CAN_ERR_BUSOFF, &[0; 8]).expect("frame");
         let e = from_socketcan("can0", busoff.into(), Duration::ZERO).expect_err("bus-off");
         assert!(matches!(e, BusError::BusOff { .. }) && !e.is_retryable());
-        let ctrl = socketcan::CanErrorFrame::new_error(CAN_ERR_CRTL, &[0, 0x04, 0, 0, 0, 0, 0, 0])
-            .expect("frame");
-        let e = from_socketcan("can0", ctrl.into(), Duration::ZERO).expect_err("controller");
-        assert!(
-            matches!(e, BusError::ErrorFrame { .. }) && e.is_retryable(),
-            "{e:?}"
-        );
+        assert_eq!(e.bus_event(), Some(BusEvent::BusOff));
+        let ctrl = |d1: u8| {
+            let f = socketcan::CanErrorFrame::new_error(CAN_ERR_CRTL, &[0, d1, 0, 0, 0, 0, 0, 0])
+                .expect("frame");
+            from_socketcan("can0", f.into(), Duration::ZERO).expect_err("controller")
+        };
+        for (d1, want) in [
+            (0x04, BusEvent::Warning),
+            (0x08, BusEvent::Warning),
+            (0x10, BusEvent::ErrorPassive),
+            (0x20, BusEvent::ErrorPassive),
+            (0x40, BusEvent::Active),
+        ] {
+            let e = ctrl(d1);
+            assert!(
+                matches!(e, BusError::Controller { event, .. } if event == want)
+                    && e.is_retryable(),
+                "data[1] = {d1:#04x}: {e:?}"
+            );
+            assert_eq!(e.bus_event(), Some(want));
+        }
+        // An RX overflow is a controller problem, not a state change.
+        let e = ctrl(0x01);
+        assert!(matches!(e, BusError::ErrorFrame { .. }) && e.bus_event().is_none());
+        let restarted =
+            socketcan::CanErrorFrame::new_error(CAN_ERR_RESTARTED, &[0; 8]).expect("frame");
+        let e = from_socketcan("can0", restarted.into(), Duration::ZERO).expect_err("restart");
+        assert_eq!(e.bus_event(), Some(BusEvent::Restarted));
     }
 }

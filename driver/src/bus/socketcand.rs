@@ -42,8 +42,11 @@
 //! [`MAX_PENDING_OUTPUT`] bytes refuses new frames with [`BusError::QueueFull`]). Received
 //! frames carry the server's timestamp (a duration since the Unix epoch, like SocketCAN's
 //! kernel timestamps). Extended-id, RTR and CAN FD frames are skipped (rollbase uses none);
-//! a server `< error … >` element (a CAN error frame) and a malformed element are returned as
-//! the retryable [`BusError::ErrorFrame`]; the server closing the connection is
+//! a server `< error CLASS TIME >` element (a CAN error frame: socketcand sends its error
+//! class, not its data) is decoded by [`error_element_event`] into [`BusError::BusOff`] or
+//! the retryable [`BusError::Controller`] (restarted; a controller problem of unknown level),
+//! any other error element and a malformed element are the retryable
+//! [`BusError::ErrorFrame`]; the server closing the connection is
 //! [`BusError::Closed`].
 //!
 //! Bus names: `socketcand://HOST:PORT/CHANNEL` ([`SocketcandUrl`]), e.g.
@@ -56,7 +59,7 @@ use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
 use std::os::fd::AsRawFd;
 use std::time::{Duration, Instant};
 
-use super::{BusError, CanBus};
+use super::{BusError, BusEvent, CanBus};
 use crate::frame::{CanFrame, TimestampedFrame, MAX_DATA_LEN, MAX_STANDARD_ID};
 
 /// The URL scheme that selects this backend in [`super::open`].
@@ -529,6 +532,28 @@ pub enum ClientDecodeError {
     Malformed(ProtocolError),
 }
 
+/// The controller state change a raw-mode `< error CLASS SECONDS.MICROS >` element reports:
+/// socketcand (linux-can/socketcand `state_raw.c`) sends a CAN error frame as its error class
+/// (the identifier without the error flag, hex) and its timestamp, without the data bytes, so
+/// a controller problem's level (warning or passive) is not known
+/// ([`BusEvent::Controller`]); bus-off and restarted are. `None` for other text (an error
+/// reply, other error classes).
+pub fn error_element_event(text: &str) -> Option<BusEvent> {
+    let mut it = text.split_whitespace();
+    let class = it.next()?;
+    let stamp = it.next()?;
+    if it.next().is_some()
+        || class.is_empty()
+        || class.len() > 8
+        || !class.bytes().all(|b| b.is_ascii_hexdigit())
+        || !stamp.bytes().all(|b| b.is_ascii_digit() || b == b'.')
+    {
+        return None;
+    }
+    let class = u32::from_str_radix(class, 16).ok()?;
+    BusEvent::from_error_frame(class, &[])
+}
+
 /// The client side of the protocol without I/O: bytes from the server in, frames out. This is
 /// exactly what [`SocketcandBus`] runs on every received byte (and what the
 /// `socketcand_client` fuzz target feeds with arbitrary bytes).
@@ -949,9 +974,24 @@ impl SocketcandBus {
     /// The next buffered frame, skipping what rollbase ignores; errors for error/malformed
     /// elements (retryable).
     fn next_buffered(&mut self) -> Result<Option<TimestampedFrame>, BusError> {
-        self.decoder.next_frame().map_err(|e| BusError::ErrorFrame {
-            iface: self.label.clone(),
-            detail: e.to_string(),
+        self.decoder.next_frame().map_err(|e| {
+            let event = match &e {
+                ClientDecodeError::ErrorElement(text) => error_element_event(text),
+                ClientDecodeError::Malformed(_) => None,
+            };
+            match event {
+                Some(BusEvent::BusOff) => BusError::BusOff {
+                    iface: self.label.clone(),
+                },
+                Some(event) => BusError::Controller {
+                    iface: self.label.clone(),
+                    event,
+                },
+                None => BusError::ErrorFrame {
+                    iface: self.label.clone(),
+                    detail: e.to_string(),
+                },
+            }
         })
     }
 
@@ -1039,6 +1079,27 @@ impl CanBus for SocketcandBus {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn error_elements_carry_bus_events() {
+        assert_eq!(
+            error_element_event("040 1700000000.000400"),
+            Some(BusEvent::BusOff)
+        );
+        assert_eq!(
+            error_element_event("100 1700000000.000400"),
+            Some(BusEvent::Restarted)
+        );
+        assert_eq!(
+            error_element_event("004 1700000000.000400"),
+            Some(BusEvent::Controller)
+        );
+        // Lost arbitration (0x002), an error reply and junk are not state changes.
+        assert_eq!(error_element_event("002 1700000000.000400"), None);
+        assert_eq!(error_element_event("unknown command"), None);
+        assert_eq!(error_element_event("040"), None);
+        assert_eq!(error_element_event("040 1.0 extra"), None);
+    }
     use std::net::TcpListener;
 
     fn frame(id: u16, data: &[u8]) -> CanFrame {
@@ -1324,7 +1385,13 @@ mod tests {
         assert_eq!(b.frame, frame(0x181, &[0x00, 0x11]));
         let e = bus.recv_until(deadline).expect_err("error element");
         assert!(
-            matches!(e, BusError::ErrorFrame { .. }) && e.is_retryable(),
+            matches!(
+                e,
+                BusError::Controller {
+                    event: BusEvent::Controller,
+                    ..
+                }
+            ) && e.is_retryable(),
             "{e:?}"
         );
         assert_eq!(bus.stats().skipped, 1, "the 29-bit frame is skipped");

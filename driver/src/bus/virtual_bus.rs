@@ -19,12 +19,17 @@
 //!   frame is dropped and counted as an overrun ([`VirtualNode::overruns`],
 //!   [`BusStats::overruns`]), as a real CAN controller's receive FIFO does; `send` never fails
 //!   because a receiver is slow.
+//! - Controller error states: [`VirtualBus::set_bus_off`] puts every node of a name in
+//!   bus-off (its sends fail with [`BusError::BusOff`], nothing reaches it) and back
+//!   (restarted); [`VirtualBus::inject_event`] reports a warning or error-passive state.
+//!   Each change reaches the node once, before its next frame, as the error frame a
+//!   SocketCAN socket reads ([`BusError::bus_event`]).
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use super::{AsyncCanBus, BusError, CanBus};
+use super::{AsyncCanBus, BusError, BusEvent, CanBus};
 use crate::fault::{FaultInjector, FaultModel, FaultStats};
 use crate::frame::{CanFrame, TimestampedFrame};
 
@@ -83,6 +88,23 @@ struct NodeSlot {
     attached: bool,
     queue: VecDeque<TimestampedFrame>,
     overruns: u64,
+    /// The node's controller is bus-off: it sends and receives nothing.
+    bus_off: bool,
+    /// Controller state changes not yet read (the oldest are dropped beyond
+    /// [`MAX_PENDING_EVENTS`]).
+    events: VecDeque<BusEvent>,
+}
+
+/// Controller state changes kept per node until read.
+const MAX_PENDING_EVENTS: usize = 16;
+
+impl NodeSlot {
+    fn push_event(&mut self, e: BusEvent) {
+        if self.events.len() >= MAX_PENDING_EVENTS {
+            self.events.pop_front();
+        }
+        self.events.push_back(e);
+    }
 }
 
 #[derive(Debug)]
@@ -167,6 +189,8 @@ impl VirtualBus {
             attached: true,
             queue: VecDeque::new(),
             overruns: 0,
+            bus_off: false,
+            events: VecDeque::new(),
         });
         VirtualNode {
             shared: Arc::clone(&self.shared),
@@ -230,6 +254,47 @@ impl VirtualBus {
         if silent {
             st.silenced.push(node_name.to_string());
         }
+    }
+
+    /// Puts the controller of every node called `node_name` in bus-off (`true`: its sends
+    /// fail with [`BusError::BusOff`] and put nothing on the medium, frames sent by others
+    /// do not reach it, and it reads the bus-off error once) or restarts it (`false`: it
+    /// reads [`BusEvent::Restarted`] once, then sends and receives again). Setting the state
+    /// it already has does nothing.
+    pub fn set_bus_off(&self, node_name: &str, off: bool) {
+        {
+            let mut st = self.shared.lock();
+            for slot in st.nodes.iter_mut() {
+                if slot.attached && slot.name == node_name && slot.bus_off != off {
+                    slot.bus_off = off;
+                    slot.push_event(if off {
+                        BusEvent::BusOff
+                    } else {
+                        BusEvent::Restarted
+                    });
+                }
+            }
+        }
+        self.shared.wake_all();
+    }
+
+    /// Reports a controller state change (warning, error passive, active) to every node
+    /// called `node_name`: it reads it once, before its next frame. Bus-off and restart go
+    /// through [`set_bus_off`](Self::set_bus_off).
+    pub fn inject_event(&self, node_name: &str, event: BusEvent) {
+        if matches!(event, BusEvent::BusOff | BusEvent::Restarted) {
+            self.set_bus_off(node_name, event == BusEvent::BusOff);
+            return;
+        }
+        {
+            let mut st = self.shared.lock();
+            for slot in st.nodes.iter_mut() {
+                if slot.attached && slot.name == node_name {
+                    slot.push_event(event);
+                }
+            }
+        }
+        self.shared.wake_all();
     }
 
     /// Counters.
@@ -322,6 +387,11 @@ impl VirtualNode {
             if st.closed {
                 return Err(self.closed());
             }
+            if st.nodes[self.index].bus_off {
+                return Err(BusError::BusOff {
+                    iface: self.name.clone(),
+                });
+            }
             st.stats.sent += 1;
             if st.silenced.contains(&self.name) {
                 st.stats.silenced += 1;
@@ -339,7 +409,7 @@ impl VirtualNode {
             let cap = *capacity;
             injector.apply(now, frame, &mut |at, f| {
                 for (i, slot) in nodes.iter_mut().enumerate() {
-                    if i == me || !slot.attached {
+                    if i == me || !slot.attached || slot.bus_off {
                         continue;
                     }
                     if slot.queue.len() >= cap {
@@ -362,6 +432,13 @@ impl VirtualNode {
     fn pop_visible(&self, st: &mut State) -> Result<Option<TimestampedFrame>, BusError> {
         if st.closed {
             return Err(self.closed());
+        }
+        if let Some(event) = st.nodes[self.index].events.pop_front() {
+            let iface = self.name.clone();
+            return Err(match event {
+                BusEvent::BusOff => BusError::BusOff { iface },
+                event => BusError::Controller { iface, event },
+            });
         }
         let now = self.shared.now(st);
         let q = &mut st.nodes[self.index].queue;

@@ -338,7 +338,8 @@ pub fn markdown() -> String {
          | any other EMCY | master | device fault naming the code, 0x603F read back into it, controlled stop |\n\
          | statusword shows fault | master | device fault (0x603F and 0x1003:01 read back into it), controlled stop |\n\
          | a steering drive's boot-up (rebooted, power cycled) | master | device fault; the re-arm boots it and homes it again (its counter restarted at 0) |\n\
-         | the controller's CAN interface bus-off | master (`Master::bus_off`) | every device lost, fault latched; the re-arm boots them all again |\n\
+         | the controller's CAN interface bus-off (error frame `CAN_ERR_BUSOFF`) | core (`CycleCore::report_bus_event`), master (`Master::bus_off`) | fault `bus-off` naming the bus and what to check, quick stop; every device of that bus lost, fault latched; the re-arm reopens the socket and boots them all again (see Bus-off below) |\n\
+         | error warning / error passive / restarted (error frames, `CAN_ERR_CRTL`, `CAN_ERR_RESTARTED`) | core | counted per bus (state port diagnostics `can`, run summary `can_bus`, ROS 2 `CAN bus` entry), logged once per change (at most one line a second); not a fault |\n\
          | stale feedback (last row) or a bus error: the host cannot close its ramp on what the drives do | core (`Master::quick_stop`) | every enabled drive gets the Quick Stop command (controlword 0x0002) until re-armed, and stops on its own quick-stop ramp (0x605A option, 0x6085 deceleration from `[cia402.quick_stop]`; option 2 then switches on disabled); no drive is enabled again before the re-arm |\n\
          | boot-up or heartbeat state other than operational while running | master | device fault (rebooted / left operational), controlled stop |\n\
          | drive not in operation enabled `enable_timeout_ms` ({} ms) after being asked | master | device fault, controlled stop |\n\
@@ -361,6 +362,35 @@ pub fn markdown() -> String {
          that grace period (after the arm, or once every device runs after a boot), however \
          late the statusword comes (the event timer allows it `status_event_timer_ms` late), at \
          most 8 times.\n\n",
+    );
+
+    s.push_str("## Bus-off\n\n");
+    s.push_str(
+        "A CAN controller whose transmit error counter passes 255 goes bus-off (ISO 11898-1): \
+         it neither sends nor receives until restarted. The usual causes are wiring and \
+         connectors, a missing or extra termination (120 ohm at both ends only), a node at \
+         another bit rate, or a node that babbles. rollbase reads the controller's error \
+         frames (Linux `include/uapi/linux/can/error.h`; SocketCAN delivers them with the \
+         error mask rollbase sets, socketcand as `< error CLASS TIME >` with the class only) \
+         as typed events: warning and error passive are counted and logged, bus-off faults \
+         the platform at once (`bus-off: the controller's CAN interface on bus B went \
+         bus-off ...`). The drives, no longer hearing the master's heartbeat and RPDOs, stop \
+         on their communication-loss reaction within `rpdo_timeout_ms` / \
+         `device_heartbeat_timeout_ms`; the master takes every device of that bus as lost \
+         (`Master::bus_off`).\n\n\
+         Restarting the controller is the kernel's job and needs CAP_NET_ADMIN, which the \
+         driver does not ask for: configure the interface to restart itself, \
+         `sudo ip link set can0 type can bitrate 1000000 restart-ms 100` (or restart it by \
+         hand: `sudo ip link set can0 type can restart`). Without `restart-ms` the interface \
+         stays bus-off and every re-arm faults again. The restart is reported \
+         (`restarted`) and counted, but nothing moves: the fault stays latched until the \
+         operator re-arms (from any command source: `{\"rearm\": true}`, the keyboard, the \
+         ROS 2 service). The re-arm opens a fresh socket on the interface, then boots every \
+         device of the bus again (NMT reset communication, the whole boot plan); steering \
+         drives keep their homing (a bus-off does not power-cycle a drive; one that did \
+         reboot announces it with its boot-up and is homed again). Native wheel modules have \
+         no boot handshake: their setpoint watchdogs tripped, the re-arm's fault reset \
+         clears them and the link resumes.\n\n",
     );
 
     s.push_str("## Homing\n\n");
