@@ -161,6 +161,45 @@ fn three_wheel_live_session_native() {
     check_live("three-wheel live native", &out);
 }
 
+/// Each wheel's steering angle as its own encoder reports it (one turn), followed by
+/// continuity from the first full reading (the turn nearest its range's centre), checked
+/// inside its range every cycle (one encoder count of slack: the readings are quantised).
+/// Returns the last angles and the smallest and largest per wheel.
+fn follow_steering(
+    out: &RunOutcome,
+    ranges: &[rollbase_control::angle::SteerRange],
+    name: &str,
+) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let n = ranges.len();
+    let first = out
+        .records
+        .iter()
+        .find(|r| r.feedback_age[..n].iter().all(|&a| a == 0))
+        .expect("feedback");
+    let mut angle: Vec<f64> = (0..n)
+        .map(|i| ranges[i].first(first.measurement.wheels[i].steer_angle))
+        .collect();
+    let (mut lo, mut hi) = (angle.clone(), angle.clone());
+    let slack = 1e-3;
+    for r in &out.records {
+        for i in 0..n {
+            let m = r.measurement.wheels[i].steer_angle;
+            angle[i] += rollbase_control::angle::diff(m, angle[i]);
+            lo[i] = lo[i].min(angle[i]);
+            hi[i] = hi[i].max(angle[i]);
+            assert!(
+                angle[i] >= ranges[i].min - slack && angle[i] <= ranges[i].max + slack,
+                "{name}: wheel {i} steered to {:.2}° at t = {:.3} s, outside its range [{:.1}°, {:.1}°]",
+                angle[i].to_degrees(),
+                r.t,
+                ranges[i].min.to_degrees(),
+                ranges[i].max.to_degrees()
+            );
+        }
+    }
+    (angle, lo, hi)
+}
+
 /// Issue 25's steering-range test: seed 000 turns the platform a full turn while it
 /// translates, so every wheel of a fixed footprint steers a full turn relative to the body,
 /// past the three-wheel example's ±170° stops. The time scaling stops the platform where a
@@ -179,33 +218,8 @@ fn unwinds_within_the_steering_range(profile: Protocol) {
         .collect();
     let n = p.n();
     let out = seed000(p, profile, ControllerKind::Dfl);
-    let first = out
-        .records
-        .iter()
-        .find(|r| r.feedback_age[..n].iter().all(|&a| a == 0))
-        .expect("feedback");
-    let mut angle: Vec<f64> = (0..n)
-        .map(|i| ranges[i].first(first.measurement.wheels[i].steer_angle))
-        .collect();
-    let (mut lo, mut hi) = (angle.clone(), angle.clone());
-    // One encoder count of slack at the stops (the readings are quantised).
-    let slack = 1e-3;
-    for r in &out.records {
-        for i in 0..n {
-            let m = r.measurement.wheels[i].steer_angle;
-            angle[i] += rollbase_control::angle::diff(m, angle[i]);
-            lo[i] = lo[i].min(angle[i]);
-            hi[i] = hi[i].max(angle[i]);
-            assert!(
-                angle[i] >= ranges[i].min - slack && angle[i] <= ranges[i].max + slack,
-                "{profile:?}: wheel {i} steered to {:.2}° at t = {:.3} s, outside its range [{:.1}°, {:.1}°]",
-                angle[i].to_degrees(),
-                r.t,
-                ranges[i].min.to_degrees(),
-                ranges[i].max.to_degrees()
-            );
-        }
-    }
+    let name = format!("three-wheel ±170° {profile:?}");
+    let (angle, lo, hi) = follow_steering(&out, &ranges, &name);
     for (i, (&truth, &a)) in out.final_truth_steer.iter().zip(&angle).enumerate() {
         assert!(
             rollbase_control::angle::diff(truth, a).abs() < 0.01,
@@ -228,7 +242,7 @@ fn unwinds_within_the_steering_range(profile: Protocol) {
         (0..n).any(|i| hi[i] - lo[i] > std::f64::consts::PI) && timing.dwell_s > 0.0,
         "the test does not exercise the stops"
     );
-    check_seed000(&format!("three-wheel ±170° {profile:?}"), &out);
+    check_seed000(&name, &out);
 }
 
 #[test]
@@ -287,31 +301,7 @@ fn live_unwinds_within_the_steering_range(profile: Protocol) {
     let s = &out.summary;
     let name = format!("three-wheel ±170° live {profile:?}");
     println!("{name}: {}", s.to_json());
-    let first = out
-        .records
-        .iter()
-        .find(|r| r.feedback_age[..n].iter().all(|&a| a == 0))
-        .expect("feedback");
-    let mut angle: Vec<f64> = (0..n)
-        .map(|i| ranges[i].first(first.measurement.wheels[i].steer_angle))
-        .collect();
-    let (mut lo, mut hi) = (angle.clone(), angle.clone());
-    for r in &out.records {
-        for i in 0..n {
-            angle[i] +=
-                rollbase_control::angle::diff(r.measurement.wheels[i].steer_angle, angle[i]);
-            lo[i] = lo[i].min(angle[i]);
-            hi[i] = hi[i].max(angle[i]);
-            assert!(
-                angle[i] >= ranges[i].min - 1e-3 && angle[i] <= ranges[i].max + 1e-3,
-                "{name}: wheel {i} steered to {:.2}° at t = {:.3} s, outside [{:.1}°, {:.1}°]",
-                angle[i].to_degrees(),
-                r.t,
-                ranges[i].min.to_degrees(),
-                ranges[i].max.to_degrees()
-            );
-        }
-    }
+    let (_, lo, hi) = follow_steering(&out, &ranges, &name);
     let mut dist = 0.0;
     for w in out.records.windows(2) {
         if let (Some((a, _)), Some((b, _))) = (w[0].truth, w[1].truth) {
