@@ -22,6 +22,28 @@ fn serial() -> MutexGuard<'static, ()> {
     SERIAL.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// Runs a real-time test body once more when the first run failed on a stale-feedback fault
+/// (its panic message carries the run's summary, and so the fault reason) — the policy of
+/// [`signal_while_driving`] for the other real-time tests of this file: a host stall of 16 ms
+/// faults a run over the bridge by design (docs/reliability-live.md), a real failure fails
+/// both runs with the same assertions, and any other failure of the first run is final.
+fn stall_tolerant(name: &str, body: impl Fn()) {
+    let first = std::panic::catch_unwind(std::panic::AssertUnwindSafe(&body));
+    let Err(payload) = first else {
+        return;
+    };
+    let msg = payload
+        .downcast_ref::<String>()
+        .cloned()
+        .or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string()))
+        .unwrap_or_default();
+    if !msg.contains("stale feedback") {
+        std::panic::resume_unwind(payload);
+    }
+    eprintln!("{name}: the first run ended in a stale-feedback fault; one more run");
+    body();
+}
+
 /// How long a process may take to say it is ready or to exit before the test calls it hung.
 const LIVENESS: Duration = Duration::from_secs(30);
 
@@ -680,52 +702,54 @@ fn native_sighup_while_driving_is_a_controlled_stop_then_exit_0_with_the_recordi
 #[test]
 fn end_of_stdin_lets_the_timeout_stop_the_platform_and_drive_exits_0_at_rest() {
     let _serial = serial();
-    let profile = "cia402";
-    let dir = scratch("eof");
-    let record = dir.join("x.mcap");
-    let (_bridge, mut sim, url) = start_platform(profile);
-    let mut drive = start_drive(&url, profile, &record);
-    let mut stdin = drive.take_stdin();
-    let mut lines = Vec::new();
-    hold(&mut lines, 0.0, 1.2, 0.2, 0.0, 0.0);
-    for line in &lines {
-        writeln!(stdin, "{line}").expect("write a command line");
-    }
-    // The end of the stream, while the last command (t = 1.0 s) still holds.
-    drop(stdin);
-    let (status, stdout) = drive.wait();
-    let stderr = drive.stderr();
-    assert_eq!(status.code(), Some(0), "{status}\n{stdout}\n{stderr}");
-    assert!(stderr.contains("end of stdin"), "{stderr}");
-    assert!(
-        stderr.contains("no valid command for the command timeout"),
-        "{stderr}"
-    );
-    let s = summary(&stdout);
-    assert_eq!(s["supervisor_final_state"], "stopped", "{s}");
-    assert!(s["fault_reason"].is_null(), "{s}");
-    // The held twist timed out once: that is what stopped the platform.
-    assert_eq!(s["command_timeouts"], 1, "{s}");
-    assert_eq!(s["rejected_commands"], 0, "{s}");
-    assert!(s["stop_time_s"].as_f64().is_some(), "{s}");
-    assert_only_the_recording(&dir);
-    let cycles = read_recording(&record, &s["recorded_messages"]);
-    assert_within_acceleration_limits(&cycles);
-    assert_controlled_stop_at_the_end(&cycles, 0.1);
-    let end = cycles.last().expect("cycles");
-    let truth = stop_sim(&mut sim);
-    eprintln!("eof: true pose {truth:?}, estimate {:?}", end.pose);
-    assert_estimate_near_truth(&end.pose, &truth);
-    // 1.0 s of commands plus the 0.5 s the last one holds, at 0.2 m/s, minus the ramps: about
-    // 0.30 m straight ahead. Stopping at the end of the stream instead of holding the last
-    // command would be 0.1 m shorter; not stopping at all never ends.
-    let [x, y, theta] = truth;
-    assert!((0.25..0.35).contains(&x), "x = {x} m");
-    assert!(
-        y.abs() < 0.01 && theta.abs() < 0.01,
-        "y = {y} m, θ = {theta} rad"
-    );
-    let _ = std::fs::remove_dir_all(dir);
+    stall_tolerant("end of stdin", || {
+        let profile = "cia402";
+        let dir = scratch("eof");
+        let record = dir.join("x.mcap");
+        let (_bridge, mut sim, url) = start_platform(profile);
+        let mut drive = start_drive(&url, profile, &record);
+        let mut stdin = drive.take_stdin();
+        let mut lines = Vec::new();
+        hold(&mut lines, 0.0, 1.2, 0.2, 0.0, 0.0);
+        for line in &lines {
+            writeln!(stdin, "{line}").expect("write a command line");
+        }
+        // The end of the stream, while the last command (t = 1.0 s) still holds.
+        drop(stdin);
+        let (status, stdout) = drive.wait();
+        let stderr = drive.stderr();
+        assert_eq!(status.code(), Some(0), "{status}\n{stdout}\n{stderr}");
+        assert!(stderr.contains("end of stdin"), "{stderr}");
+        assert!(
+            stderr.contains("no valid command for the command timeout"),
+            "{stderr}"
+        );
+        let s = summary(&stdout);
+        assert_eq!(s["supervisor_final_state"], "stopped", "{s}");
+        assert!(s["fault_reason"].is_null(), "{s}");
+        // The held twist timed out once: that is what stopped the platform.
+        assert_eq!(s["command_timeouts"], 1, "{s}");
+        assert_eq!(s["rejected_commands"], 0, "{s}");
+        assert!(s["stop_time_s"].as_f64().is_some(), "{s}");
+        assert_only_the_recording(&dir);
+        let cycles = read_recording(&record, &s["recorded_messages"]);
+        assert_within_acceleration_limits(&cycles);
+        assert_controlled_stop_at_the_end(&cycles, 0.1);
+        let end = cycles.last().expect("cycles");
+        let truth = stop_sim(&mut sim);
+        eprintln!("eof: true pose {truth:?}, estimate {:?}", end.pose);
+        assert_estimate_near_truth(&end.pose, &truth);
+        // 1.0 s of commands plus the 0.5 s the last one holds, at 0.2 m/s, minus the ramps: about
+        // 0.30 m straight ahead. Stopping at the end of the stream instead of holding the last
+        // command would be 0.1 m shorter; not stopping at all never ends.
+        let [x, y, theta] = truth;
+        assert!((0.25..0.35).contains(&x), "x = {x} m");
+        assert!(
+            y.abs() < 0.01 && theta.abs() < 0.01,
+            "y = {y} m, θ = {theta} rad"
+        );
+        let _ = std::fs::remove_dir_all(dir);
+    });
 }
 
 /// `rollbase drive` (CiA 402) on `url` with `extra` arguments and commands on stdin.
@@ -910,101 +934,103 @@ fn sdo_reads_and_writes_expedited_and_segmented_objects_of_the_twin() {
 #[test]
 fn bad_command_lines_are_rejected_and_counted_and_the_service_drives_on() {
     let _serial = serial();
-    let profile = "native";
-    let dir = scratch("bad");
-    let record = dir.join("x.mcap");
-    let (_bridge, mut sim, url) = start_platform(profile);
-    let mut drive = start_drive(&url, profile, &record);
-    let mut stdin = drive.take_stdin();
-    let mut lines = Vec::new();
-    hold(&mut lines, 0.0, 2.4, 0.2, 0.0, 0.0);
-    // Between the valid ones (sorted by time: each line is taken at its t).
-    let bad = [
-        // Python's json.dumps(float("nan")) and float("inf").
-        r#"{"t": 0.50, "vx": NaN, "vy": 0.0, "omega": 0.0}"#,
-        r#"{"t": 0.70, "vx": 0.2, "vy": 0.0, "omega": Infinity}"#,
-        // serde_json's and nlohmann::json's NaN.
-        r#"{"t": 0.90, "vx": 0.2, "vy": null, "omega": 0.0}"#,
-        // Beyond the 10 m/s sanity bound: a sender's bug, refused rather than shaped.
-        r#"{"t": 1.10, "vx": 50.0, "vy": 0.0, "omega": 0.0}"#,
-        // A leg target far outside the legs' range [0.37, 0.56] m.
-        r#"{"t": 1.30, "legs": [0.9, 0.9, 0.9, 0.9]}"#,
-        // Not a command at all: skipped with a warning naming the line (not a command, so
-        // not counted by the command port).
-        r#"{"t": 1.40, "vx": 0.2,"#,
-    ];
-    lines.extend(bad.iter().map(|l| l.to_string()));
-    let t_of = |l: &String| -> f64 {
-        l.split("\"t\": ")
-            .nth(1)
-            .and_then(|r| r.split(',').next())
-            .and_then(|x| x.parse().ok())
-            .expect("t")
-    };
-    lines.sort_by(|a, b| t_of(a).total_cmp(&t_of(b)));
-    for line in &lines {
-        writeln!(stdin, "{line}").expect("write a command line");
-    }
-    drop(stdin);
-    let (status, stdout) = drive.wait();
-    let stderr = drive.stderr();
-    assert_eq!(status.code(), Some(0), "{status}\n{stdout}\n{stderr}");
-    let s = summary(&stdout);
-    assert_eq!(s["rejected_commands"], 5, "{s}\n{stderr}");
-    assert_eq!(s["supervisor_final_state"], "stopped", "{s}");
-    assert!(s["fault_reason"].is_null(), "{s}");
-    // Only the end of the stream timed out: a rejected command is no command, but the valid
-    // ones around it kept the platform going.
-    assert_eq!(s["command_timeouts"], 1, "{s}");
-    for why in [
-        "`vx` is NaN",
-        "`omega` is inf",
-        "`vy` is NaN",
-        "`vx` = 50 is beyond the sanity bound",
-        "leg 1 target 0.9 m is outside",
-    ] {
+    stall_tolerant("bad command lines", || {
+        let profile = "native";
+        let dir = scratch("bad");
+        let record = dir.join("x.mcap");
+        let (_bridge, mut sim, url) = start_platform(profile);
+        let mut drive = start_drive(&url, profile, &record);
+        let mut stdin = drive.take_stdin();
+        let mut lines = Vec::new();
+        hold(&mut lines, 0.0, 2.4, 0.2, 0.0, 0.0);
+        // Between the valid ones (sorted by time: each line is taken at its t).
+        let bad = [
+            // Python's json.dumps(float("nan")) and float("inf").
+            r#"{"t": 0.50, "vx": NaN, "vy": 0.0, "omega": 0.0}"#,
+            r#"{"t": 0.70, "vx": 0.2, "vy": 0.0, "omega": Infinity}"#,
+            // serde_json's and nlohmann::json's NaN.
+            r#"{"t": 0.90, "vx": 0.2, "vy": null, "omega": 0.0}"#,
+            // Beyond the 10 m/s sanity bound: a sender's bug, refused rather than shaped.
+            r#"{"t": 1.10, "vx": 50.0, "vy": 0.0, "omega": 0.0}"#,
+            // A leg target far outside the legs' range [0.37, 0.56] m.
+            r#"{"t": 1.30, "legs": [0.9, 0.9, 0.9, 0.9]}"#,
+            // Not a command at all: skipped with a warning naming the line (not a command, so
+            // not counted by the command port).
+            r#"{"t": 1.40, "vx": 0.2,"#,
+        ];
+        lines.extend(bad.iter().map(|l| l.to_string()));
+        let t_of = |l: &String| -> f64 {
+            l.split("\"t\": ")
+                .nth(1)
+                .and_then(|r| r.split(',').next())
+                .and_then(|x| x.parse().ok())
+                .expect("t")
+        };
+        lines.sort_by(|a, b| t_of(a).total_cmp(&t_of(b)));
+        for line in &lines {
+            writeln!(stdin, "{line}").expect("write a command line");
+        }
+        drop(stdin);
+        let (status, stdout) = drive.wait();
+        let stderr = drive.stderr();
+        assert_eq!(status.code(), Some(0), "{status}\n{stdout}\n{stderr}");
+        let s = summary(&stdout);
+        assert_eq!(s["rejected_commands"], 5, "{s}\n{stderr}");
+        assert_eq!(s["supervisor_final_state"], "stopped", "{s}");
+        assert!(s["fault_reason"].is_null(), "{s}");
+        // Only the end of the stream timed out: a rejected command is no command, but the valid
+        // ones around it kept the platform going.
+        assert_eq!(s["command_timeouts"], 1, "{s}");
+        for why in [
+            "`vx` is NaN",
+            "`omega` is inf",
+            "`vy` is NaN",
+            "`vx` = 50 is beyond the sanity bound",
+            "leg 1 target 0.9 m is outside",
+        ] {
+            assert!(
+                stderr
+                    .lines()
+                    .any(|l| l.contains("command rejected:") && l.contains(why)),
+                "no rejection `{why}` in the log:\n{stderr}"
+            );
+        }
+        let garbled = lines
+            .iter()
+            .position(|l| l == bad[5])
+            .expect("the garbled line")
+            + 1;
         assert!(
-            stderr
-                .lines()
-                .any(|l| l.contains("command rejected:") && l.contains(why)),
-            "no rejection `{why}` in the log:\n{stderr}"
+            stderr.contains(&format!("stdin line {garbled}: not a JSON object")),
+            "{stderr}"
         );
-    }
-    let garbled = lines
-        .iter()
-        .position(|l| l == bad[5])
-        .expect("the garbled line")
-        + 1;
-    assert!(
-        stderr.contains(&format!("stdin line {garbled}: not a JSON object")),
-        "{stderr}"
-    );
-    let cycles = read_recording(&record, &s["recorded_messages"]);
-    assert_within_acceleration_limits(&cycles);
-    assert_controlled_stop_at_the_end(&cycles, 0.1);
-    let end = cycles.last().expect("cycles");
-    let truth = stop_sim(&mut sim);
-    eprintln!(
-        "bad: true pose {truth:?}, estimate {:?}, legs {:?}",
-        end.pose, end.legs
-    );
-    assert_estimate_near_truth(&end.pose, &truth);
-    // Straight ahead for 2.2 s of commands plus the 0.5 s hold (about 0.52 m): it drove on
-    // through the rejected lines; none of them reached a wheel (no turn, legs where they were).
-    let [x, y, theta] = truth;
-    assert!(x > 0.42, "x = {x} m");
-    assert!(
-        y.abs() < 0.01 && theta.abs() < 0.01,
-        "y = {y} m, θ = {theta} rad"
-    );
-    for (i, l) in end.legs.iter().enumerate() {
+        let cycles = read_recording(&record, &s["recorded_messages"]);
+        assert_within_acceleration_limits(&cycles);
+        assert_controlled_stop_at_the_end(&cycles, 0.1);
+        let end = cycles.last().expect("cycles");
+        let truth = stop_sim(&mut sim);
+        eprintln!(
+            "bad: true pose {truth:?}, estimate {:?}, legs {:?}",
+            end.pose, end.legs
+        );
+        assert_estimate_near_truth(&end.pose, &truth);
+        // Straight ahead for 2.2 s of commands plus the 0.5 s hold (about 0.52 m): it drove on
+        // through the rejected lines; none of them reached a wheel (no turn, legs where they were).
+        let [x, y, theta] = truth;
+        assert!(x > 0.42, "x = {x} m");
         assert!(
-            (l - 0.465).abs() < 0.003,
-            "leg {} at {l} m, nominal 0.465 m",
-            i + 1
+            y.abs() < 0.01 && theta.abs() < 0.01,
+            "y = {y} m, θ = {theta} rad"
         );
-    }
-    let _ = std::fs::remove_dir_all(dir);
+        for (i, l) in end.legs.iter().enumerate() {
+            assert!(
+                (l - 0.465).abs() < 0.003,
+                "leg {} at {l} m, nominal 0.465 m",
+                i + 1
+            );
+        }
+        let _ = std::fs::remove_dir_all(dir);
+    });
 }
 
 /// The terminal mode flags of a tty (`c_lflag`).
