@@ -1134,9 +1134,11 @@ pub fn run(a: BridgeArgs) -> Result<i32, BridgeError> {
     }
     if a.priority > 0 {
         // On this (the runtime's only) thread, before the runtime starts.
+        // Memory locked too: a page of the bridge's code evicted under memory pressure (a
+        // build next to it) would stall it on a disk read while it stands in for the bus.
         let opts = rollbase_control::runtime::RealtimeOptions {
             fifo_priority: Some(a.priority),
-            lock_memory: false,
+            lock_memory: true,
             max_cycles: None,
         };
         for line in rollbase_control::runtime::realtime_setup(&opts) {

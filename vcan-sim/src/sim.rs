@@ -1007,9 +1007,11 @@ pub fn spawn_realtime_at_priority(
     let (tx, rx) = std::sync::mpsc::channel();
     let h = std::thread::spawn(move || {
         let lines = rollbase_control::runtime::realtime_setup(
+            // Memory locked too (the modules it stands in for never wait for a page of
+            // their code to be read back from disk under memory pressure).
             &rollbase_control::runtime::RealtimeOptions {
                 fifo_priority: Some(priority),
-                lock_memory: false,
+                lock_memory: true,
                 max_cycles: None,
             },
         );
