@@ -91,6 +91,28 @@ fn sleep_until(ns: i128) {
     }
 }
 
+/// Slack kept between the end of the computation and the next deadline (the setpoints'
+/// send, the records, the wake-up's own jitter).
+const DEADLINE_SLACK_NS: i128 = 250_000;
+
+/// When the feedback window of a cycle with deadline `deadline` whose SYNC went out at
+/// `sync_sent` closes (all ns on CLOCK_MONOTONIC): `window` after the SYNC, but no later than
+/// the next deadline less twice `reserve` (the recent peak compute time: a host whose compute
+/// is slow is as slow to wake, so its late cycles get less of the period) and
+/// [`DEADLINE_SLACK_NS`], and never earlier than `window` after the deadline (the window of a
+/// cycle on time).
+fn window_end(deadline: i128, sync_sent: i128, period: i128, window: i128, reserve: i128) -> i128 {
+    let latest = deadline + period - 2 * reserve - DEADLINE_SLACK_NS;
+    (sync_sent + window).min(latest).max(deadline + window)
+}
+
+/// The compute-time reserve after a cycle that computed for `compute` ns: a peak detector
+/// that follows a longer cycle at once and forgets it by 1/64 a cycle (a 3 ms spike decays to
+/// 1 ms in about 70 cycles, 0.28 s at 250 Hz).
+fn next_compute_reserve(reserve: i128, compute: i128) -> i128 {
+    compute.max(reserve - reserve / 64).max(0)
+}
+
 /// Hands every frame waiting on `bus` to the core, stamped `t`; a controller state change
 /// (error frame: warning, passive, bus-off, restarted) goes to the core
 /// ([`CycleCore::report_bus_event`]) and the drain goes on; another non-retryable receive
@@ -246,6 +268,8 @@ pub fn run_realtime_io(
     core.arm();
     let mut k: u64 = 0;
     let mut deadline = start;
+    // Until the first cycle measured its compute time: a quarter of the period.
+    let mut compute_reserve_ns = period_ns / 4;
     loop {
         if let Some(m) = opts.max_cycles {
             if k >= m {
@@ -279,10 +303,21 @@ pub fn run_realtime_io(
         // The modules get the whole window to answer from the moment the SYNC went out, not
         // from the deadline: a cycle that woke late (a busy host) would otherwise close its
         // window before the answers came and steer on the previous SYNC's readings, a cycle
-        // old (tests/tests/realtime_late_sync.rs).
+        // old (tests/tests/realtime_late_sync.rs). But the late cycle must still finish
+        // before the next deadline: the window ends no later than the next deadline less
+        // twice the compute time the recent cycles took (`window_end`), and never before the
+        // deadline's own window. A host too slow for both (a slow VM: compute 1 ms, wake-ups 1 ms late)
+        // then keeps the 250 Hz cadence on answers a cycle old instead of overrunning every
+        // period (tests/tests/realtime_slow_compute.rs).
         let sync_sent = ts_ns(&monotonic_now());
         core.sync_sent_at((sync_sent - start) as f64 * 1e-9);
-        sleep_until(sync_sent.max(deadline) + window_ns);
+        sleep_until(window_end(
+            deadline,
+            sync_sent,
+            period_ns,
+            window_ns,
+            compute_reserve_ns,
+        ));
         let now_rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
         drain(bus, core, now_rt, &mut report);
         // Commands last, just before the setpoints are computed: a command that arrived
@@ -313,6 +348,7 @@ pub fn run_realtime_io(
             // Compute time: from the end of feedback collection to the last setpoint sent
             // (the collection window itself is waiting, not computing).
             rec.timing.compute_us = (done_ns - collected) as f64 / 1e3;
+            compute_reserve_ns = next_compute_reserve(compute_reserve_ns, done_ns - collected);
             rec.timing.deadline_miss = miss;
             let _ = t;
         }
@@ -365,6 +401,42 @@ pub fn run_realtime_io(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    const MS: i128 = 1_000_000;
+
+    #[test]
+    fn a_late_sync_gets_its_window_while_the_compute_still_fits() {
+        // On time: the window after the deadline.
+        assert_eq!(window_end(0, 0, 4 * MS, 2 * MS, MS / 5), 2 * MS);
+        // 1 ms late, fast compute: the whole window after the SYNC.
+        assert_eq!(window_end(0, MS, 4 * MS, 2 * MS, MS / 5), 3 * MS);
+        // 1.5 ms late, 0.5 ms compute: cut where twice the compute and the slack still fit
+        // (4 - 1 - 0.25 = 2.75 ms).
+        assert_eq!(
+            window_end(0, 3 * MS / 2, 4 * MS, 2 * MS, MS / 2),
+            11 * MS / 4
+        );
+        // A compute too long for any extension (1 ms: 4 - 2 - 0.25 < 2): the on-time window,
+        // not earlier.
+        assert_eq!(window_end(0, MS, 4 * MS, 2 * MS, MS), 2 * MS);
+        assert_eq!(window_end(0, MS, 4 * MS, 2 * MS, 3 * MS), 2 * MS);
+    }
+
+    #[test]
+    fn the_compute_reserve_follows_a_peak_at_once_and_forgets_it_slowly() {
+        let mut r = next_compute_reserve(MS / 5, 3 * MS);
+        assert_eq!(r, 3 * MS);
+        let mut n = 0;
+        while r > MS {
+            r = next_compute_reserve(r, MS / 10);
+            n += 1;
+        }
+        assert!((60..=80).contains(&n), "{n} cycles to forget a 3 ms peak");
+        for _ in 0..2000 {
+            r = next_compute_reserve(r, MS / 10);
+        }
+        assert!((MS / 10..MS / 10 + MS / 50).contains(&r), "{r} ns");
+    }
     use crate::model::platform::Platform;
     use crate::runtime::command_channel::command_channel;
     use crate::runtime::RuntimeConfig;
