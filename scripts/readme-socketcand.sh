@@ -5,6 +5,8 @@
 #   - the bridge listens, the simulator connects, `rollbase run` drives seed 000 to its goal
 #     (exit 0) with a finished recording, the monitor connects and ends on Ctrl-C (exit 0);
 #   - the bridge and the simulator stop cleanly on SIGTERM (exit 0).
+# `rollbase run` gets a second try only after a stale-feedback fault (a host stall), on a
+# fresh simulator, as the real-time cli tests do; both summaries are printed.
 #
 # Usage: scripts/readme-socketcand.sh
 # The release build reuses $CARGO_TARGET_DIR (default: this checkout's target/) for the
@@ -46,6 +48,7 @@ logs="$work/logs"
 mkdir -p "$logs"
 bridge_pid=""
 sim_pid=""
+sim_cmd=""
 for ((k = 1; k < ${#lines[@]}; k++)); do
     line="${lines[$k]}"
     echo "== $line"
@@ -57,7 +60,7 @@ for ((k = 1; k < ${#lines[@]}; k++)); do
         pids+=("$pid")
         case "$cmd" in
         *" bridge"*) bridge_pid=$pid ;;
-        *rollbase-sim*) sim_pid=$pid ;;
+        *rollbase-sim*) sim_pid=$pid sim_cmd=$cmd ;;
         esac
         # As a person typing the next line: the server is up before its client starts.
         sleep 1
@@ -78,6 +81,28 @@ for ((k = 1; k < ${#lines[@]}; k++)); do
         rc=$?
         set -e
         tail -n 25 "$logs/$k.out" "$logs/$k.err"
+        # A host stall of 16 ms (4 cycles) is a stale-feedback fault by design, and a shared
+        # CI machine has them (the landing CI of e5ad6ff: 335 deadline misses, compute p99
+        # 2.5 ms against 0.19 ms here). As the real-time cli tests and the VM stage do, the
+        # run gets one more try after exactly that fault, on a fresh simulator (the faulted
+        # run left the plant where it stopped); the first run's recording is kept aside and
+        # both summaries are printed. Any other failure, or a second fault, is final.
+        if [ "$rc" -ne 0 ] && [ -n "$sim_cmd" ] && grep -q "sent no valid feedback" "$logs/$k.out" "$logs/$k.err"; then
+            echo "== '$line' ended in a stale-feedback fault (a host stall, above); once more on a fresh simulator"
+            [ -f run.mcap ] && mv run.mcap "$logs/run-attempt1.mcap"
+            kill -TERM "$sim_pid"
+            wait "$sim_pid" || true
+            bash -c "exec $sim_cmd" >"$logs/sim2.out" 2>"$logs/sim2.err" &
+            sim_pid=$!
+            pids+=("$sim_pid")
+            sleep 1
+            kill -0 "$sim_pid" || { echo "'$sim_cmd' ended at once:"; cat "$logs/sim2.err"; exit 1; }
+            set +e
+            timeout 300 bash -c "exec $line" >"$logs/$k.retry.out" 2>"$logs/$k.retry.err"
+            rc=$?
+            set -e
+            tail -n 25 "$logs/$k.retry.out" "$logs/$k.retry.err"
+        fi
         [ "$rc" -eq 0 ] || { echo "'$line' exited $rc"; exit 1; }
         ;;
     esac
