@@ -108,9 +108,12 @@ fn a_slow_host_keeps_the_cycle_cadence() {
         last.state.name(),
         last.reason.map(|r| r.to_string())
     );
-    // Every cycle overran without the cut; a tenth is room for a shared machine's stalls.
+    // Every cycle overran without the cut (500 of 500, by construction: 1 ms late + 2 ms
+    // window + 1 ms compute = the period); with it, 0 of 500 on an idle machine here. A
+    // cycle misses now only when a stall adds more than the millisecond left, so a quarter
+    // leaves room for a loaded shared machine and still tells the two rules apart.
     assert!(
-        report.deadline_misses * 10 < report.cycles,
+        report.deadline_misses * 4 < report.cycles,
         "{} deadline misses in {} cycles ({} skipped)",
         report.deadline_misses,
         report.cycles,
