@@ -44,8 +44,8 @@ pub use self::lockstep::{
     LockstepReport, LockstepState, StepHooks, VirtualLockstepBus,
 };
 pub use self::realtime::{
-    realtime_setup, run_realtime, run_realtime_io, RealtimeIo, RealtimeOptions, RealtimeReport,
-    MAX_COMMANDS_PER_CYCLE,
+    realtime_setup, run_realtime, run_realtime_buses, run_realtime_io, RealtimeError, RealtimeIo,
+    RealtimeOptions, RealtimeReport, MAX_COMMANDS_PER_CYCLE,
 };
 pub use self::summary::{percentile, RunSummary, TimeHistogram};
 

@@ -1,10 +1,31 @@
 //! The real-time cycle thread: absolute deadlines, two wake-ups per cycle.
+//!
+//! One CAN bus or several: [`run_realtime_buses`] takes one [`CanBus`] per bus of the
+//! platform (`buses[b]` serves the wheels with `bus = b`, [`Platform::buses`](crate::Platform::buses)) and refuses
+//! ([`RealtimeError::BusCount`], before anything runs) a number of buses that differs from
+//! the platform's. Each cycle keeps the one-bus order on every bus: the late frames of every
+//! bus are handed over first (each with its bus, [`CycleCore::on_frame_on`]), then the cycle
+//! starts with one [`FrameBuf`] per bus ([`CycleCore::start_cycle_buses`],
+//! [`CycleCore::after_late_frames_buses`]) and each bus's SYNC and due frames go out on it,
+//! bus 0 first; one feedback window serves all buses (their SYNCs leave together), then
+//! every bus is drained, the commands are taken and each bus's setpoints go out on it
+//! ([`CycleCore::finish_cycle_buses`]). A controller state change or a bus error is
+//! reported with the index of the bus it came from ([`CycleCore::report_bus_event`]). After
+//! a re-arm that followed a bus-off ([`CycleCore::take_reopen`]) the buses that reported
+//! bus-off since the last reopen are reopened, and only those: the other buses' devices
+//! were never lost (their frames go on flowing); if none did (a bus-off the core learnt of
+//! otherwise), every bus is reopened.
+//!
+//! [`run_realtime`] and [`run_realtime_io`] are the one-bus entry points: the same loop on one
+//! bus, every frame on it, as before (a platform with two buses is then served as if on one
+//! medium, as [`CycleCore::start_cycle`] documents).
 
 use super::command_channel::CommandReceiver;
 use super::CycleCore;
+use crate::model::platform::MAX_BUSES;
 use crate::runtime::record::CycleRecord;
 use crate::service::ports::BaseState;
-use rollbase_driver::bus::CanBus;
+use rollbase_driver::bus::{BusEvent, CanBus};
 use rollbase_driver::frame::FrameBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{SyncSender, TrySendError};
@@ -50,6 +71,31 @@ pub struct RealtimeReport {
     /// Bus errors seen.
     pub bus_errors: u64,
 }
+
+/// Why [`run_realtime_buses`] refused to run.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum RealtimeError {
+    /// The number of buses given differs from the number the platform's wheels are on.
+    BusCount {
+        /// Buses the platform's wheels are on ([`Platform::buses`](crate::Platform::buses)).
+        platform: usize,
+        /// Buses given.
+        given: usize,
+    },
+}
+
+impl std::fmt::Display for RealtimeError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::BusCount { platform, given } => write!(
+                f,
+                "the platform's wheels are on {platform} CAN bus(es) but {given} bus(es) were given: the real-time cycle needs one bus per platform bus (bus b serves the wheels with bus = b)"
+            ),
+        }
+    }
+}
+
+impl std::error::Error for RealtimeError {}
 
 fn monotonic_now() -> libc::timespec {
     let mut ts = libc::timespec {
@@ -113,20 +159,44 @@ fn next_compute_reserve(reserve: i128, compute: i128) -> i128 {
     compute.max(reserve - reserve / 64).max(0)
 }
 
+/// Which bus a drain or send serves: its index, and whether frames are handed to the core
+/// with it (several buses, [`CycleCore::on_frame_on`]) or without (one medium,
+/// [`CycleCore::on_frame`]: the core finds the bus from the node).
+#[derive(Clone, Copy)]
+struct BusTag {
+    index: usize,
+    tagged: bool,
+}
+
 /// Hands every frame waiting on `bus` to the core, stamped `t`; a controller state change
 /// (error frame: warning, passive, bus-off, restarted) goes to the core
-/// ([`CycleCore::report_bus_event`]) and the drain goes on; another non-retryable receive
-/// error is reported to the core (bus-error fault) and ends the drain.
-fn drain(bus: &mut dyn CanBus, core: &mut CycleCore, t: f64, report: &mut RealtimeReport) {
+/// ([`CycleCore::report_bus_event`], with the bus's index) and the drain goes on; another
+/// non-retryable receive error is reported to the core (bus-error fault) and ends the drain.
+/// A bus-off sets `off`.
+fn drain(
+    bus: &mut dyn CanBus,
+    tag: BusTag,
+    core: &mut CycleCore,
+    t: f64,
+    report: &mut RealtimeReport,
+    off: &mut bool,
+) {
     loop {
         match bus.try_recv() {
-            Ok(Some(f)) => core.on_frame(&f.frame, t),
+            Ok(Some(f)) => {
+                if tag.tagged {
+                    core.on_frame_on(tag.index, &f.frame, t)
+                } else {
+                    core.on_frame(&f.frame, t)
+                }
+            }
             Ok(None) => break,
             Err(e) if e.bus_event().is_some() => {
                 if let Some(ev) = e.bus_event() {
-                    core.report_bus_event(0, ev);
-                    if ev == rollbase_driver::bus::BusEvent::BusOff {
+                    core.report_bus_event(tag.index, ev);
+                    if ev == BusEvent::BusOff {
                         report.bus_errors += 1;
+                        *off = true;
                     }
                 }
             }
@@ -140,18 +210,24 @@ fn drain(bus: &mut dyn CanBus, core: &mut CycleCore, t: f64, report: &mut Realti
     }
 }
 
-/// Sends every frame of `out`; a non-retryable error is reported to the core (bus-error
-/// fault), a retryable one drops that frame.
+/// Sends every frame of `out`; a controller state change goes to the core with the bus's
+/// index (a bus-off sets `off`), another non-retryable error is reported to the core
+/// (bus-error fault), a retryable one drops that frame.
 fn send_all(
     bus: &mut dyn CanBus,
+    tag: BusTag,
     core: &mut CycleCore,
     out: &FrameBuf,
     report: &mut RealtimeReport,
+    off: &mut bool,
 ) {
     for f in out.as_slice() {
         if let Err(e) = bus.send(f) {
             if let Some(ev) = e.bus_event() {
-                core.report_bus_event(0, ev);
+                core.report_bus_event(tag.index, ev);
+                if ev == BusEvent::BusOff {
+                    *off = true;
+                }
             } else if !e.is_retryable() {
                 core.report_bus_error();
                 report.bus_errors += 1;
@@ -254,6 +330,54 @@ pub fn run_realtime_io(
     opts: &RealtimeOptions,
     time_origin_unix_ns: u64,
 ) -> RealtimeReport {
+    run_loop(core, &mut [bus], false, stop, io, opts, time_origin_unix_ns)
+}
+
+/// [`run_realtime_io`] on one CAN bus per bus of the platform: `buses[b]` serves the wheels
+/// with `bus = b` (module docs). Refuses, before anything runs, a number of buses that
+/// differs from [`Platform::buses`](crate::Platform::buses) ([`RealtimeError::BusCount`]).
+pub fn run_realtime_buses(
+    core: &mut CycleCore,
+    buses: &mut [&mut dyn CanBus],
+    stop: &AtomicBool,
+    io: &RealtimeIo<'_>,
+    opts: &RealtimeOptions,
+    time_origin_unix_ns: u64,
+) -> Result<RealtimeReport, RealtimeError> {
+    let platform = core.platform().buses();
+    if buses.len() != platform || platform > MAX_BUSES {
+        return Err(RealtimeError::BusCount {
+            platform,
+            given: buses.len(),
+        });
+    }
+    let tagged = buses.len() > 1;
+    Ok(run_loop(
+        core,
+        buses,
+        tagged,
+        stop,
+        io,
+        opts,
+        time_origin_unix_ns,
+    ))
+}
+
+/// The cycle loop on `buses` (one to [`MAX_BUSES`]); `tagged`: hand received frames to the
+/// core with their bus's index.
+fn run_loop(
+    core: &mut CycleCore,
+    buses: &mut [&mut dyn CanBus],
+    tagged: bool,
+    stop: &AtomicBool,
+    io: &RealtimeIo<'_>,
+    opts: &RealtimeOptions,
+    time_origin_unix_ns: u64,
+) -> RealtimeReport {
+    let nb = buses.len().clamp(1, MAX_BUSES);
+    let tag = |index: usize| BusTag { index, tagged };
+    // Buses that reported bus-off since they were last reopened.
+    let mut off = [false; MAX_BUSES];
     let sink = io.records;
     let mut report = RealtimeReport {
         setup: realtime_setup(opts),
@@ -262,7 +386,7 @@ pub fn run_realtime_io(
     let period_ns = (core.platform().dt() * 1e9).round() as i128;
     let window_ns = (core.config().feedback_window * 1e9).round() as i128;
     let start = ts_ns(&monotonic_now()) + period_ns;
-    let mut out = FrameBuf::new();
+    let mut outs: [FrameBuf; MAX_BUSES] = std::array::from_fn(|_| FrameBuf::new());
     let mut prev_wake: Option<i128> = None;
     let mut stop_sent = false;
     core.arm();
@@ -290,16 +414,34 @@ pub fn run_realtime_io(
         // to the window's end, one drain: two wake-ups a cycle instead of one per frame (the
         // cycle waits for the window's end anyway).
         // A re-arm after a bus-off: a fresh socket before the devices are booted again.
-        if core.take_reopen() && bus.reopen().is_err() {
-            core.report_bus_error();
-            report.bus_errors += 1;
+        // Only the buses that went bus-off (module docs); all if none is known to have.
+        if core.take_reopen() {
+            let any = off[..nb].iter().any(|&o| o);
+            for (b, bus) in buses.iter_mut().enumerate().take(nb) {
+                if (!any || off[b]) && bus.reopen().is_err() {
+                    core.report_bus_error();
+                    report.bus_errors += 1;
+                }
+                off[b] = false;
+            }
         }
-        core.start_cycle(td, &mut out);
-        drain(bus, core, td - 1e-6, &mut report);
+        core.start_cycle_buses(td, &mut outs[..nb]);
+        for (b, bus) in buses.iter_mut().enumerate().take(nb) {
+            drain(
+                &mut **bus,
+                tag(b),
+                core,
+                td - 1e-6,
+                &mut report,
+                &mut off[b],
+            );
+        }
         // What the late answers made due (CiA 402: a device's next SDO request) goes out
         // with the SYNC, not a cycle later.
-        core.after_late_frames(td, &mut out);
-        send_all(bus, core, &out, &mut report);
+        core.after_late_frames_buses(td, &mut outs[..nb]);
+        for (b, bus) in buses.iter_mut().enumerate().take(nb) {
+            send_all(&mut **bus, tag(b), core, &outs[b], &mut report, &mut off[b]);
+        }
         // The modules get the whole window to answer from the moment the SYNC went out, not
         // from the deadline: a cycle that woke late (a busy host) would otherwise close its
         // window before the answers came and steer on the previous SYNC's readings, a cycle
@@ -319,7 +461,9 @@ pub fn run_realtime_io(
             compute_reserve_ns,
         ));
         let now_rt = (ts_ns(&monotonic_now()) - start) as f64 * 1e-9;
-        drain(bus, core, now_rt, &mut report);
+        for (b, bus) in buses.iter_mut().enumerate().take(nb) {
+            drain(&mut **bus, tag(b), core, now_rt, &mut report, &mut off[b]);
+        }
         // Commands last, just before the setpoints are computed: a command that arrived
         // during the feedback window acts in this cycle's setpoints (latency ≤ one period plus
         // the compute time), not one cycle later.
@@ -331,8 +475,10 @@ pub fn run_realtime_io(
         }
         let collected = ts_ns(&monotonic_now());
         let tw = (collected - start) as f64 * 1e-9;
-        core.finish_cycle(tw, &mut out);
-        send_all(bus, core, &out, &mut report);
+        core.finish_cycle_buses(tw, &mut outs[..nb]);
+        for (b, bus) in buses.iter_mut().enumerate().take(nb) {
+            send_all(&mut **bus, tag(b), core, &outs[b], &mut report, &mut off[b]);
+        }
         let done_ns = ts_ns(&monotonic_now());
         let miss = done_ns > deadline + period_ns;
         if miss {
@@ -517,5 +663,124 @@ mod tests {
         );
         let d = core.base_state().diagnostics.can[0];
         assert_eq!(d.count(BusEvent::BusOff), 1, "{d:?}");
+    }
+}
+
+#[cfg(test)]
+mod bus_count_tests {
+    use super::*;
+    use crate::model::platform::Platform;
+    use crate::runtime::RuntimeConfig;
+    use rollbase_driver::bus::{BusError, VirtualBus, VirtualBusConfig};
+    use rollbase_driver::frame::{CanFrame, TimestampedFrame};
+    use std::time::Instant;
+
+    /// A bus that must never be used: the refusal comes before anything runs.
+    struct Untouched;
+
+    impl CanBus for Untouched {
+        fn send(&mut self, _: &CanFrame) -> Result<(), BusError> {
+            panic!("a refused run sent a frame")
+        }
+        fn try_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError> {
+            panic!("a refused run received")
+        }
+        fn recv_until(&mut self, _: Instant) -> Result<Option<TimestampedFrame>, BusError> {
+            panic!("a refused run received")
+        }
+        fn name(&self) -> &str {
+            "untouched"
+        }
+    }
+
+    fn refused(p: Platform, given: usize) -> RealtimeError {
+        let mut core = CycleCore::new_live(p, RuntimeConfig::default()).expect("core");
+        let mut a = Untouched;
+        let mut b = Untouched;
+        let mut c = Untouched;
+        let all: [&mut dyn CanBus; 3] = [&mut a, &mut b, &mut c];
+        let mut buses: Vec<&mut dyn CanBus> = all.into_iter().take(given).collect();
+        let stop = AtomicBool::new(false);
+        let opts = RealtimeOptions {
+            fifo_priority: None,
+            lock_memory: false,
+            max_cycles: Some(1),
+        };
+        let r = run_realtime_buses(
+            &mut core,
+            &mut buses,
+            &stop,
+            &RealtimeIo::default(),
+            &opts,
+            0,
+        );
+        assert_eq!(core.cycles(), 0, "no cycle ran");
+        r.expect_err("a bus count that differs from the platform's is refused")
+    }
+
+    #[test]
+    fn a_bus_count_that_differs_from_the_platforms_is_refused_naming_both() {
+        let six = Platform::six_wheel();
+        assert_eq!(six.buses(), 2);
+        for given in [0, 1, 3] {
+            let e = refused(six.clone(), given);
+            assert_eq!(e, RealtimeError::BusCount { platform: 2, given });
+            let m = e.to_string();
+            assert!(
+                m.contains("on 2 CAN bus(es)") && m.contains(&format!("but {given} bus(es)")),
+                "{m}"
+            );
+        }
+        let justin = Platform::justin();
+        assert_eq!(justin.buses(), 1);
+        let e = refused(justin, 2);
+        assert_eq!(
+            e,
+            RealtimeError::BusCount {
+                platform: 1,
+                given: 2
+            }
+        );
+        let m = e.to_string();
+        assert!(
+            m.contains("on 1 CAN bus(es)") && m.contains("but 2 bus(es)"),
+            "{m}"
+        );
+    }
+
+    #[test]
+    fn a_matching_bus_count_runs() {
+        let mut core =
+            CycleCore::new_live(Platform::six_wheel(), RuntimeConfig::default()).expect("core");
+        let v0 = VirtualBus::new(VirtualBusConfig::default());
+        let v1 = VirtualBus::new(VirtualBusConfig::default());
+        let mut c0 = v0.node("controller");
+        let mut c1 = v1.node("controller");
+        let mut p0 = v0.node("peer");
+        let mut p1 = v1.node("peer");
+        let stop = AtomicBool::new(false);
+        let opts = RealtimeOptions {
+            fifo_priority: None,
+            lock_memory: false,
+            max_cycles: Some(3),
+        };
+        let report = run_realtime_buses(
+            &mut core,
+            &mut [&mut c0, &mut c1],
+            &stop,
+            &RealtimeIo::default(),
+            &opts,
+            0,
+        )
+        .expect("two buses for a two-bus platform");
+        assert_eq!(report.cycles, 3);
+        // Each bus carried its own SYNC every cycle.
+        for peer in [&mut p0, &mut p1] {
+            let mut syncs = 0;
+            while let Ok(Some(f)) = peer.try_recv() {
+                syncs += usize::from(f.frame.id() == 0x080);
+            }
+            assert_eq!(syncs, 3);
+        }
     }
 }
