@@ -975,6 +975,132 @@ pub fn run_realtime(
     Ok(summary)
 }
 
+/// How long [`run_realtime_buses`] waits on bus 0 before it looks at the other buses (a
+/// thread cannot block on two buses at once): a frame on another bus is read at most this late
+/// (it is still applied at its arrival, [`ClockMap`]; only the answers it causes may leave up to
+/// this late, counted in [`RealtimeSummary::max_send_lateness`]).
+pub const MULTI_BUS_POLL: Duration = Duration::from_micros(200);
+
+/// [`run_realtime`] on one bus per bus of the platform: `buses[b]` carries the devices of the
+/// wheels with `bus = b` (their frames go out on it, and a frame received on it reaches only
+/// them, [`Simulator::on_frame_on`]). One bus is exactly [`run_realtime`]. With several, each
+/// wake-up waits on bus 0 at most [`MULTI_BUS_POLL`], then reads every bus (each with its own
+/// [`ClockMap`]), applies the frames in arrival order and advances to the earliest moment a
+/// bus was seen empty. A device whose bus index is beyond `buses` sends on the last bus.
+pub fn run_realtime_buses(
+    sim: &mut Simulator,
+    buses: &mut [&mut dyn CanBus],
+    stop: &AtomicBool,
+    duration: Option<Duration>,
+) -> Result<RealtimeSummary, SimError> {
+    if buses.is_empty() {
+        return Err(invalid("buses", 0, "the simulator needs at least one bus"));
+    }
+    if buses.len() == 1 {
+        return run_realtime(sim, &mut *buses[0], stop, duration);
+    }
+    let nb = buses.len();
+    let epoch = Instant::now() - sim.now();
+    let start = sim.now();
+    let mut summary = RealtimeSummary::default();
+    let mut clocks = vec![ClockMap::new(); nb];
+    for c in clocks.iter_mut() {
+        c.empty_at(start);
+    }
+    // (arrival, bus, frame) of one wake-up, applied in arrival order.
+    let mut got: Vec<(Duration, usize, CanFrame)> = Vec::with_capacity(MAX_FRAMES_PER_WAKEUP);
+    let mut due: Vec<(Duration, CanFrame)> = Vec::new();
+    loop {
+        let now = epoch.elapsed();
+        summary.elapsed = now - start;
+        if stop.load(Ordering::Relaxed) || duration.is_some_and(|d| now - start >= d) {
+            break;
+        }
+        let mut next = sim.next_step_time();
+        if let Some(t) = sim.next_tx_time() {
+            next = next.min(t);
+        }
+        if let Some(d) = duration {
+            next = next.min(start + d);
+        }
+        next = next.min(now + MULTI_BUS_POLL);
+        got.clear();
+        // The moment every bus had been seen empty (nothing unseen arrived before it), or
+        // None when a bus still holds frames (then advance only to the last frame applied).
+        let mut seen_empty: Option<Duration> = None;
+        let mut full = false;
+        for (b, bus) in buses.iter_mut().enumerate() {
+            let mut r = if b == 0 {
+                bus.recv_until(epoch + next)
+            } else {
+                bus.try_recv()
+            };
+            let mut taken = 0usize;
+            loop {
+                match r {
+                    Ok(Some(tf)) => {
+                        let read = epoch.elapsed();
+                        let at = clocks[b].arrival(tf.timestamp, read);
+                        summary.frames_in += 1;
+                        summary.max_receive_lag =
+                            summary.max_receive_lag.max(read.saturating_sub(at));
+                        got.push((at, b, tf.frame));
+                        taken += 1;
+                        if taken >= MAX_FRAMES_PER_WAKEUP / nb {
+                            full = true;
+                            break;
+                        }
+                    }
+                    Ok(None) => {
+                        let empty = epoch.elapsed();
+                        clocks[b].empty_at(empty);
+                        seen_empty = Some(seen_empty.map_or(empty, |e| e.min(empty)));
+                        break;
+                    }
+                    Err(e) if e.is_retryable() => {
+                        summary.recv_errors += 1;
+                        let empty = epoch.elapsed();
+                        seen_empty = Some(seen_empty.map_or(empty, |e| e.min(empty)));
+                        break;
+                    }
+                    Err(e) => return Err(e.into()),
+                }
+                r = bus.try_recv();
+            }
+        }
+        got.sort_by_key(|(at, _, _)| *at);
+        let mut last = sim.now();
+        for &(at, b, f) in &got {
+            let at = at.max(sim.now());
+            sim.on_frame_on(b, at, &f);
+            last = at;
+        }
+        let now = if full {
+            last
+        } else {
+            seen_empty.unwrap_or(last)
+        }
+        .max(sim.now());
+        sim.advance_to(now);
+        let mut err = None;
+        due.clear();
+        sim.drain_due(now, &mut |at, f| due.push((at, f)));
+        for &(at, f) in &due {
+            summary.max_send_lateness = summary.max_send_lateness.max(now.saturating_sub(at));
+            let b = sim.bus_of_node((f.id() & 0x7F) as u8).min(nb - 1);
+            match buses[b].send(&f) {
+                Ok(()) => summary.frames_out += 1,
+                Err(e) if e.is_retryable() => summary.send_errors += 1,
+                Err(e) => err = Some(e),
+            }
+        }
+        if let Some(e) = err {
+            return Err(e.into());
+        }
+    }
+    Ok(summary)
+}
+
 /// The thread of [`spawn_realtime`]: it returns the simulator and the run's result.
 pub type SimHandle = std::thread::JoinHandle<(Simulator, Result<RealtimeSummary, SimError>)>;
 
