@@ -1516,3 +1516,126 @@ fn example_platforms_print_check_and_their_new_fields_are_explained() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("bus 1"));
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// Two CAN buses (issue 25): the real-time demo runs the six-wheel example (wheels 1–3 on
+/// bus 0, 4–6 on bus 1) on two in-process buses, each wheel's frames on its own bus (the
+/// candump log names them vcan0 and vcan1) with one SYNC per bus per cycle; `run` and
+/// `drive` refuse a number of `--bus` options that differs from the platform's buses, and
+/// the same bus twice; `demo --lockstep` (one bus) refuses the platform, naming the option.
+#[test]
+fn a_two_bus_platform_runs_on_two_buses_and_one_bus_is_refused() {
+    let _serial = serial();
+    let root = env!("CARGO_MANIFEST_DIR");
+    let six = format!("{root}/docs/examples/six-wheel.toml");
+    let dir = std::env::temp_dir().join(format!("rollbase-cli-buses-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let wp = |t: f64, x: f64| {
+        format!("[[waypoints]]\nt = {t}\nx = {x}\ny = 0.0\ntheta = 0.0\nlegs = [0.465, 0.465, 0.465, 0.465, 0.465, 0.465]\n\n")
+    };
+    std::fs::write(dir.join("wp.toml"), wp(0.0, 0.0) + &wp(2.0, 0.3)).unwrap();
+    let out = rollbase()
+        .current_dir(&dir)
+        .args([
+            "demo",
+            "--json",
+            "--config",
+            &six,
+            "--trajectory",
+            "wp.toml",
+        ])
+        .args(["--candump", "two.log"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{stderr}");
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    let cycles = v["cycles"].as_u64().unwrap();
+    let misses = v["deadline_misses"].as_u64().unwrap();
+    println!(
+        "two-bus demo: {cycles} cycles, {misses} deadline misses, max position error {} m, final state {}",
+        v["max_position_error_m"], v["supervisor_final_state"]
+    );
+    assert!(v["fault_reason"].is_null(), "{v}");
+    assert_eq!(v["supervisor_final_state"], "stopped", "{v}");
+    // The 2 s trajectory is 500 cycles (a busy machine may skip a few: they are not counted).
+    assert!(cycles > 250, "{cycles} cycles for a 2 s trajectory");
+    assert!(misses * 10 < cycles, "{misses} deadline misses in {cycles}");
+    assert_eq!(v["can_bus"].as_array().map(|a| a.len()), Some(2), "{v}");
+    let log = std::fs::read_to_string(dir.join("two.log")).unwrap();
+    let mut syncs = [0u64; 2];
+    let mut wrong = Vec::new();
+    for l in log.lines() {
+        let mut f = l.split_whitespace();
+        let (_, iface, frame) = (f.next(), f.next().unwrap(), f.next().unwrap());
+        let id = u16::from_str_radix(frame.split('#').next().unwrap(), 16).unwrap();
+        let bus = match iface {
+            "vcan0" => 0,
+            "vcan1" => 1,
+            other => panic!("frame on {other}: {l}"),
+        };
+        let node = id & 0x7F;
+        if id == 0x080 {
+            syncs[bus] += 1;
+        } else if !(1..=6).contains(&node) || usize::from((node - 1) / 3) != bus {
+            wrong.push(l.to_string());
+        }
+    }
+    assert_eq!(syncs, [cycles, cycles], "one SYNC per bus per cycle");
+    assert!(
+        wrong.is_empty(),
+        "frames on the wrong bus: {:?}",
+        &wrong[..wrong.len().min(5)]
+    );
+    // One `--bus` for two platform buses: refused before any bus is opened, naming both counts.
+    for cmd in [
+        vec!["run", "--trajectory", "scenario:seed000"],
+        vec!["drive"],
+    ] {
+        let out = rollbase()
+            .args(&cmd)
+            .args(["--config", &six, "--bus", "nosuchcan7"])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{cmd:?}: {err}");
+        assert!(
+            err.contains("on 2 CAN bus(es) but 1 `--bus`") && !err.contains("nosuchcan7"),
+            "{cmd:?}: {err}"
+        );
+        let out = rollbase()
+            .args(&cmd)
+            .args([
+                "--config",
+                &six,
+                "--bus",
+                "nosuchcan7",
+                "--bus",
+                "nosuchcan7",
+            ])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{cmd:?}: {err}");
+        assert!(
+            err.contains("`--bus nosuchcan7` given twice"),
+            "{cmd:?}: {err}"
+        );
+    }
+    // Two `--bus` for a one-bus platform: refused too.
+    let out = rollbase()
+        .args(["run", "--trajectory", "scenario:seed000"])
+        .args(["--bus", "nosuchcan7", "--bus", "nosuchcan8"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("on 1 CAN bus(es) but 2 `--bus`"), "{err}");
+    let out = rollbase()
+        .args(["demo", "--lockstep", "--config", &six])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("`--lockstep` runs one bus"), "{err}");
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -135,6 +135,9 @@ pub struct RecordOptions {
     pub ros2: Ros2Options,
     /// `header.frame_id` of `can_msgs/msg/Frame` messages (the CAN interface, e.g. `can0`).
     pub can_interface: String,
+    /// On a platform with two buses, the interface of each bus: a frame of bus b gets
+    /// `bus_interfaces[b]` as its `frame_id` (`can_interface` when there is none).
+    pub bus_interfaces: Vec<String>,
 }
 
 impl Default for RecordOptions {
@@ -142,6 +145,7 @@ impl Default for RecordOptions {
         Self {
             ros2: Ros2Options::default(),
             can_interface: "can".into(),
+            bus_interfaces: Vec::new(),
         }
     }
 }
@@ -177,6 +181,7 @@ pub struct McapRecorder {
     counts: [u64; SLOTS],
     sampler: StateSampler,
     can_interface: String,
+    bus_interfaces: Vec<String>,
     failed: bool,
 }
 
@@ -263,6 +268,7 @@ impl McapRecorder {
             counts: [0; SLOTS],
             sampler: StateSampler::new(o),
             can_interface: opts.can_interface.clone(),
+            bus_interfaces: opts.bus_interfaces.clone(),
             failed: false,
         })
     }
@@ -335,11 +341,19 @@ impl McapRecorder {
                 base
             }
         };
-        let iface = self.can_interface.clone();
+        // The interface of each bus (at most two: one clone each per cycle).
+        let iface_of = |b: usize| {
+            self.bus_interfaces
+                .get(b)
+                .unwrap_or(&self.can_interface)
+                .clone()
+        };
+        let ifaces = [iface_of(0), iface_of(1)];
         for f in &r.rx[..r.n_rx.min(r.rx.len())] {
+            let iface = &ifaces[usize::from(f.bus).min(1)];
             let len = f.len.min(8);
             let frame = msg::CanFrame {
-                header: Header::new(at(f.t), &iface),
+                header: Header::new(at(f.t), iface),
                 id: u32::from(f.id),
                 dlc: len,
                 data: f.data,
@@ -348,7 +362,7 @@ impl McapRecorder {
             self.put(RX, at(f.t), &frame)?;
             if let Some(kind) = f.error {
                 let rej = msg::FrameRejection {
-                    header: Header::new(at(f.t), &iface),
+                    header: Header::new(at(f.t), iface),
                     id: u32::from(f.id),
                     dlc: len,
                     data: f.data,
@@ -358,8 +372,9 @@ impl McapRecorder {
             }
         }
         for f in &r.tx[..r.n_tx.min(r.tx.len())] {
+            let iface = &ifaces[usize::from(f.bus).min(1)];
             let frame = msg::CanFrame {
-                header: Header::new(at(f.t), &iface),
+                header: Header::new(at(f.t), iface),
                 id: u32::from(f.id),
                 dlc: f.len.min(8),
                 data: f.data,

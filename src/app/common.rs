@@ -175,20 +175,70 @@ pub(crate) fn load_platform(path: Option<&Path>) -> Result<Platform, CliError> {
 }
 
 /// The platform file (or the default platform) with the wire profile overridden when
-/// `profile` is given, validated again (the `[cia402]` section must fit the platform).
+/// `profile` is given, validated again (the `[cia402]` section must fit the platform), for a
+/// command that serves one bus: a platform on two buses is refused.
 pub(crate) fn load_platform_as(
     path: Option<&Path>,
     profile: Option<Protocol>,
 ) -> Result<Platform, CliError> {
     let p = load_platform_profile(path, profile)?;
     if p.buses() > 1 {
-        // Two buses would share the one `--bus` medium (two SYNCs a cycle): refused.
+        // Two buses would share one medium (two SYNCs a cycle): refused.
         return Err(CliError::Usage(format!(
-            "platform `{}` puts wheels on bus 1: running two buses (one `--bus` each) is not implemented yet; put every wheel on `bus = 0` (`rollbase bus-load --config` tells whether they fit)",
+            "platform `{}` puts wheels on bus 1: this command serves one bus; `rollbase run` and `rollbase drive` serve two (one `--bus` per platform bus), and so does the real-time `rollbase demo`; or put every wheel on `bus = 0` (`rollbase bus-load --config` tells whether they fit)",
             p.name
         )));
     }
     Ok(p)
+}
+
+/// [`load_platform_as`] for `demo --lockstep`: virtual time runs one bus, the real-time demo
+/// two.
+pub(crate) fn load_platform_lockstep(
+    path: Option<&Path>,
+    profile: Option<Protocol>,
+) -> Result<Platform, CliError> {
+    let p = load_platform_profile(path, profile)?;
+    if p.buses() > 1 {
+        return Err(CliError::Usage(format!(
+            "platform `{}` puts wheels on bus 1: `--lockstep` runs one bus; drop `--lockstep` to run it in real time on two in-process buses",
+            p.name
+        )));
+    }
+    Ok(p)
+}
+
+/// [`load_platform_as`] for a command that runs the platform on the buses `buses` (the
+/// `--bus` options, in order: the b-th serves the wheels with `bus = b`): refused unless
+/// there is one per platform bus, each a different bus.
+pub(crate) fn load_platform_on(
+    path: Option<&Path>,
+    profile: Option<Protocol>,
+    buses: &[String],
+) -> Result<Platform, CliError> {
+    let p = load_platform_profile(path, profile)?;
+    check_buses(&p, buses)?;
+    Ok(p)
+}
+
+/// One `--bus` per bus of `p`, each a different one.
+pub(crate) fn check_buses(p: &Platform, buses: &[String]) -> Result<(), CliError> {
+    if buses.len() != p.buses() {
+        return Err(CliError::Usage(format!(
+            "platform `{}` puts its wheels on {} CAN bus(es) but {} `--bus` option(s) were given: give one `--bus` per platform bus, in order (the first `--bus` serves the wheels with `bus = 0`, the second those with `bus = 1`)",
+            p.name,
+            p.buses(),
+            buses.len()
+        )));
+    }
+    for (k, b) in buses.iter().enumerate() {
+        if buses[..k].contains(b) {
+            return Err(CliError::Usage(format!(
+                "`--bus {b}` given twice: each platform bus needs its own CAN bus (two SYNCs a cycle on one bus would reach every module)"
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// [`load_platform_as`] for the commands that only read the platform (bus-load): a platform

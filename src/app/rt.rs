@@ -5,7 +5,7 @@
 use rollbase_control::model::platform::MAX_BUSES;
 use rollbase_control::runtime::record::CycleRecord;
 use rollbase_control::runtime::{
-    run_realtime_io, CommandReceiver, CycleCore, RealtimeIo, RealtimeOptions, RealtimeReport,
+    run_realtime_buses, CommandReceiver, CycleCore, RealtimeIo, RealtimeOptions, RealtimeReport,
 };
 use rollbase_control::service::ports::{BaseState, CanBusDiagnostics};
 use rollbase_driver::bus::BusEvent;
@@ -81,13 +81,15 @@ fn pin_to(cpu: usize, who: &str) -> String {
     }
 }
 
-/// Runs `core` on `bus` in real time on its own thread until it is done; the calling thread
-/// takes the records into `sinks` and calls `each` with every record (status lines). `stop`
-/// (signals, `--duration`) asks for a controlled stop; so does a failed recording, whose
-/// error the caller finds in the sinks.
+/// Runs `core` on `buses` (one per platform bus, `buses[b]` for the wheels with `bus = b`) in
+/// real time on its own thread until it is done; the calling thread takes the records into
+/// `sinks` and calls `each` with every record (status lines). `stop` (signals, `--duration`)
+/// asks for a controlled stop; so does a failed recording, whose error the caller finds in
+/// the sinks. A number of buses that differs from the platform's is refused before anything
+/// runs.
 pub(crate) fn run_cycle(
     core: &mut CycleCore,
-    bus: &mut dyn CanBus,
+    buses: &mut [&mut dyn CanBus],
     sinks: &mut Sinks,
     stop: &Arc<AtomicBool>,
     ports: Ports<'_>,
@@ -107,10 +109,12 @@ pub(crate) fn run_cycle(
                     states: ports.states,
                     commands: ports.commands.as_ref(),
                 };
-                let mut r = run_realtime_io(core, bus, stop, &io, &opts, origin_ns);
-                r.setup.extend(pinned);
+                let r = run_realtime_buses(core, buses, stop, &io, &opts, origin_ns);
                 drop(tx);
-                r
+                r.map(|mut r| {
+                    r.setup.extend(pinned);
+                    r
+                })
             });
         let cycle = match cycle {
             Ok(c) => c,
@@ -144,7 +148,8 @@ pub(crate) fn run_cycle(
         }
         cycle
             .join()
-            .map_err(|_| CliError::Usage("the cycle thread panicked".into()))
+            .map_err(|_| CliError::Usage("the cycle thread panicked".into()))?
+            .map_err(|e| CliError::Usage(e.to_string()))
     })?;
     sinks.summary.deadline_misses = sinks.summary.deadline_misses.max(report.deadline_misses);
     Ok(report)
@@ -233,7 +238,7 @@ pub(crate) fn print_report(report: &RealtimeReport, quiet: bool) {
 }
 
 /// The simulated wheel modules of a demo, in real time on their own thread (wall-clock
-/// in-process bus).
+/// in-process buses, one per platform bus: [`rollbase_vcan_sim::run_realtime_buses`]).
 ///
 /// The thread runs at SCHED_FIFO 81 on one CPU, and the cycle thread is kept on the same CPU
 /// ([`Ports::cpu`]). Real modules never stall with the host; a simulator thread does: on a
@@ -250,10 +255,10 @@ pub(crate) struct SimThread {
 }
 
 impl SimThread {
-    /// Starts `sim` on `node`, on the CPU the caller runs on.
+    /// Starts `sim` on `nodes` (node b on platform bus b), on the CPU the caller runs on.
     pub(crate) fn start(
         mut sim: Simulator,
-        mut node: rollbase_driver::bus::virtual_bus::VirtualNode,
+        mut nodes: Vec<rollbase_driver::bus::virtual_bus::VirtualNode>,
     ) -> Result<Self, CliError> {
         let stop = Arc::new(AtomicBool::new(false));
         let s2 = stop.clone();
@@ -274,7 +279,11 @@ impl SimThread {
                     lock_memory: false,
                     max_cycles: None,
                 });
-                if let Err(e) = sim.run_realtime(&mut node, &s2) {
+                let mut buses: Vec<&mut dyn CanBus> =
+                    nodes.iter_mut().map(|n| n as &mut dyn CanBus).collect();
+                if let Err(e) =
+                    rollbase_vcan_sim::run_realtime_buses(&mut sim, &mut buses, &s2, None)
+                {
                     tracing::error!("simulator: {e}");
                 }
             })
@@ -301,17 +310,45 @@ impl Drop for SimThread {
     }
 }
 
-/// An in-process wall-clock bus with the controller's node and the simulator's node.
-pub(crate) fn wall_bus() -> (
-    rollbase_driver::bus::virtual_bus::VirtualNode,
-    rollbase_driver::bus::virtual_bus::VirtualNode,
+/// `n` in-process wall-clock buses (one per platform bus): the controller's nodes and the
+/// simulator's nodes.
+pub(crate) fn wall_buses(
+    n: usize,
+) -> (
+    Vec<rollbase_driver::bus::virtual_bus::VirtualNode>,
+    Vec<rollbase_driver::bus::virtual_bus::VirtualNode>,
 ) {
     use rollbase_driver::bus::{BusClock, VirtualBus, VirtualBusConfig};
-    let vbus = VirtualBus::new(VirtualBusConfig {
-        clock: BusClock::Wall,
-        ..Default::default()
-    });
-    (vbus.node("controller"), vbus.node("simulator"))
+    (0..n.max(1))
+        .map(|_| {
+            let vbus = VirtualBus::new(VirtualBusConfig {
+                clock: BusClock::Wall,
+                ..Default::default()
+            });
+            (vbus.node("controller"), vbus.node("simulator"))
+        })
+        .unzip()
+}
+
+/// The nodes as the cycle's buses.
+pub(crate) fn as_buses(
+    nodes: &mut [rollbase_driver::bus::virtual_bus::VirtualNode],
+) -> Vec<&mut dyn CanBus> {
+    nodes.iter_mut().map(|n| n as &mut dyn CanBus).collect()
+}
+
+/// The opened buses as the cycle's buses.
+pub(crate) fn boxed_buses(buses: &mut [Box<dyn CanBus>]) -> Vec<&mut dyn CanBus> {
+    buses
+        .iter_mut()
+        .map(|b| &mut **b as &mut dyn CanBus)
+        .collect()
+}
+
+/// The interface names of `buses`, joined for a log line ("vcan0 and vcan1").
+pub(crate) fn bus_names(buses: &[&mut dyn CanBus]) -> String {
+    let names: Vec<&str> = buses.iter().map(|b| b.name()).collect();
+    names.join(" and ")
 }
 
 #[cfg(test)]

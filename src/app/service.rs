@@ -33,10 +33,14 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use super::common::{
-    install_signals, load_platform_as, runtime_config, unix_now, CliError, CommonRun, SignalAction,
+    install_signals, load_platform_lockstep, load_platform_on, load_platform_profile,
+    runtime_config, unix_now, CliError, CommonRun, SignalAction,
 };
 use super::common::{Ready, Ros2Run, StateConsumer};
-use super::rt::{poll_recv, print_report, run_cycle, wall_bus, Ports, SimThread};
+use super::rt::{
+    as_buses, boxed_buses, bus_names, poll_recv, print_report, run_cycle, wall_buses, Ports,
+    SimThread,
+};
 use super::sinks::{OutputPlan, Sinks};
 use super::trajectory::{finish, run_demo_lockstep, DemoArgs};
 
@@ -47,9 +51,11 @@ const NODE_STATE_QUEUE: usize = 16;
 
 #[derive(Args, Debug)]
 pub(crate) struct DriveArgs {
-    /// CAN bus: an interface (vcan0, can0) or socketcand://HOST:PORT/CHANNEL.
-    #[arg(long)]
-    pub(crate) bus: String,
+    /// CAN bus: an interface (vcan0, can0) or socketcand://HOST:PORT/CHANNEL. A platform on
+    /// two buses takes two, in order: the first `--bus` serves the wheels with `bus = 0`, the
+    /// second those with `bus = 1`.
+    #[arg(long, required = true)]
+    pub(crate) bus: Vec<String>,
     /// Motion commands as JSON Lines from this file, or `-` for stdin (see README "Driving
     /// the platform live"). Without it the platform holds at rest until stopped.
     #[arg(long, value_name = "FILE|-")]
@@ -516,10 +522,11 @@ struct Service {
     origin: f64,
 }
 
-/// The real-time base service on `canbus`: sources → cycle → records and state.
+/// The real-time base service on `buses` (one per platform bus): sources → cycle → records
+/// and state.
 fn serve(
     s: &mut Service,
-    canbus: &mut dyn CanBus,
+    buses: &mut [&mut dyn CanBus],
     source: Source,
     common: &CommonRun,
     on_state: Option<StateConsumer>,
@@ -606,14 +613,14 @@ fn serve(
     let mut status = StatusLog::new();
     tracing::info!(
         "driving on {} ({} wheels, {} profile, {} Hz): following commands once armed; SIGINT, SIGTERM, SIGHUP or SIGQUIT stops",
-        canbus.name(),
+        bus_names(buses),
         platform.n(),
         platform.protocol,
         platform.cycle_hz
     );
     let report = run_cycle(
         &mut s.core,
-        canbus,
+        buses,
         &mut s.sinks,
         &s.stop,
         Ports {
@@ -654,7 +661,7 @@ fn serve(
 /// `rollbase drive`.
 pub(crate) fn drive(a: DriveArgs) -> Result<i32, CliError> {
     // Everything is validated before the bus is opened or a file created.
-    let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
+    let platform = load_platform_on(a.common.config.as_deref(), a.common.profile, &a.bus)?;
     let cfg = runtime_config(&a.common, None)?;
     let source = Source::from_arg(a.commands.as_deref())?;
     let ros2 = a.ros2.options(platform.n())?;
@@ -664,14 +671,20 @@ pub(crate) fn drive(a: DriveArgs) -> Result<i32, CliError> {
     }
     plan.check()?;
     let core = CycleCore::new_live(platform, cfg)?;
-    let mut canbus = bus::open(&a.bus)?;
+    let mut canbuses: Vec<Box<dyn CanBus>> = a
+        .bus
+        .iter()
+        .map(|b| bus::open(b))
+        .collect::<Result<_, _>>()?;
+    let mut buses = boxed_buses(&mut canbuses);
     let origin = unix_now();
     let stop = Arc::new(AtomicBool::new(false));
     let signalled = install_signals(stop.clone(), SignalAction::ControlledStop);
     let mut meta = BTreeMap::new();
-    meta.insert("bus".into(), a.bus.clone());
+    meta.insert("bus".into(), a.bus.join(","));
     meta.insert("mode".into(), "drive".into());
-    let sinks = Sinks::new("drive", &plan, canbus.name(), origin, meta)?;
+    let names: Vec<&str> = buses.iter().map(|b| b.name()).collect();
+    let sinks = Sinks::new("drive", &plan, &names, origin, meta)?;
     let mut s = Service {
         core,
         sinks,
@@ -679,7 +692,7 @@ pub(crate) fn drive(a: DriveArgs) -> Result<i32, CliError> {
         signalled,
         origin,
     };
-    serve(&mut s, canbus.as_mut(), source, &a.common, None, ros2, None)?;
+    serve(&mut s, &mut buses, source, &a.common, None, ros2, None)?;
     finish(
         s.sinks,
         &s.core,
@@ -691,7 +704,12 @@ pub(crate) fn drive(a: DriveArgs) -> Result<i32, CliError> {
 /// `rollbase demo --commands FILE|-` and `rollbase demo --teleop`: the base service with the
 /// simulated platform in-process, starting at rest (legs nominal).
 pub(crate) fn demo_live(a: DemoArgs) -> Result<i32, CliError> {
-    let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
+    // Real time serves a platform on two buses (two in-process buses); virtual time one.
+    let platform = if a.lockstep {
+        load_platform_lockstep(a.common.config.as_deref(), a.common.profile)?
+    } else {
+        load_platform_profile(a.common.config.as_deref(), a.common.profile)?
+    };
     let cfg: RuntimeConfig = runtime_config(&a.common, None)?;
     let source = if a.teleop {
         Source::Keyboard
@@ -751,7 +769,13 @@ pub(crate) fn demo_live(a: DemoArgs) -> Result<i32, CliError> {
         if a.lockstep { "lockstep" } else { "realtime" }.into(),
     );
     meta.insert("seed".into(), a.seed.to_string());
-    let sinks = Sinks::new(name, &plan, "vcan0", origin, meta)?;
+    let sinks = Sinks::new(
+        name,
+        &plan,
+        super::trajectory::demo_interfaces(platform.buses()),
+        origin,
+        meta,
+    )?;
     let mut s = Service {
         core,
         sinks,
@@ -790,8 +814,8 @@ pub(crate) fn demo_live(a: DemoArgs) -> Result<i32, CliError> {
                 .into(),
         )),
         (false, source) => {
-            let (mut ctrl, sim_node) = wall_bus();
-            let sim = SimThread::start(sim, sim_node)?;
+            let (mut ctrl, sim_nodes) = wall_buses(platform.buses());
+            let sim = SimThread::start(sim, sim_nodes)?;
             let on_state: Option<StateConsumer> = if a.teleop {
                 Some(super::teleop::status_line())
             } else {
@@ -799,7 +823,7 @@ pub(crate) fn demo_live(a: DemoArgs) -> Result<i32, CliError> {
             };
             serve(
                 &mut s,
-                &mut ctrl,
+                &mut as_buses(&mut ctrl),
                 source,
                 &a.common,
                 on_state,

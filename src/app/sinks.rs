@@ -256,7 +256,8 @@ pub(crate) struct Sinks {
     mcap: Option<Out<McapRecorder>>,
     candump: Option<Out<CandumpWriter<std::io::BufWriter<std::fs::File>>>>,
     plan: OutputPlan,
-    iface: String,
+    /// The interface of each bus (bus b's frames are logged on `ifaces[b]`).
+    ifaces: Vec<String>,
     pub(crate) time_origin: f64,
     error: Option<(Failed, CliError)>,
     /// The recorder's warning about the state was logged.
@@ -264,15 +265,21 @@ pub(crate) struct Sinks {
 }
 
 impl Sinks {
-    /// Opens the outputs of `plan` (checked again here) under their temporary names.
+    /// Opens the outputs of `plan` (checked again here) under their temporary names; `ifaces`
+    /// names the interface of each bus (at least one), for the frames' logs.
     pub(crate) fn new(
         scenario: &str,
         plan: &OutputPlan,
-        iface: &str,
+        ifaces: &[&str],
         time_origin: f64,
         meta: BTreeMap<String, String>,
     ) -> Result<Self, CliError> {
         plan.check()?;
+        let ifaces: Vec<String> = if ifaces.is_empty() {
+            vec!["can".to_string()]
+        } else {
+            ifaces.iter().map(|s| s.to_string()).collect()
+        };
         let mcap = match &plan.record {
             Some(p) => {
                 make_parent(p)?;
@@ -281,7 +288,8 @@ impl Sinks {
                     &tmp,
                     &meta,
                     &RecordOptions {
-                        can_interface: iface.to_string(),
+                        can_interface: ifaces[0].clone(),
+                        bus_interfaces: ifaces.clone(),
                         ros2: plan.ros2.clone(),
                     },
                 );
@@ -337,7 +345,7 @@ impl Sinks {
             mcap,
             candump,
             plan: plan.clone(),
-            iface: iface.into(),
+            ifaces,
             time_origin,
             error: None,
             state_warned: false,
@@ -402,7 +410,11 @@ impl Sinks {
                 };
                 let entry = LogEntry {
                     timestamp: Duration::from_secs_f64((self.time_origin + t).max(0.0)),
-                    interface: self.iface.clone(),
+                    interface: self
+                        .ifaces
+                        .get(usize::from(f.bus))
+                        .unwrap_or(&self.ifaces[0])
+                        .clone(),
                     frame,
                 };
                 if let Err(e) = o.w.write(&entry) {

@@ -14,9 +14,10 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::common::{
-    install_signals, load_platform_as, runtime_config, unix_now, CliError, CommonRun, SignalAction,
+    install_signals, load_platform_lockstep, load_platform_on, load_platform_profile,
+    runtime_config, unix_now, CliError, CommonRun, SignalAction,
 };
-use super::rt::{print_report, run_cycle, wall_bus, Ports, SimThread};
+use super::rt::{as_buses, print_report, run_cycle, wall_buses, Ports, SimThread};
 use super::sinks::{exit_code, print_summary, Ending, OutputPlan, Sinks};
 
 #[derive(Args, Debug)]
@@ -58,9 +59,10 @@ pub(crate) struct DemoArgs {
 
 #[derive(Args, Debug)]
 pub(crate) struct RunArgs {
-    /// CAN interface (vcan0, can0, …).
-    #[arg(long)]
-    pub(crate) bus: String,
+    /// CAN interface (vcan0, can0, …). A platform on two buses takes two, in order: the first
+    /// `--bus` serves the wheels with `bus = 0`, the second those with `bus = 1`.
+    #[arg(long, required = true)]
+    pub(crate) bus: Vec<String>,
     /// Trajectory: a waypoint file (TOML) or `scenario:NAME` (scenario:seed000, scenario:seed001).
     #[arg(long)]
     pub(crate) trajectory: String,
@@ -82,8 +84,14 @@ impl DemoArgs {
 
 /// A demo that follows a trajectory (the live ones are `service::demo_live`).
 pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
-    // Everything is validated before anything is created or started.
-    let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
+    // Everything is validated before anything is created or started. In real time the
+    // in-process simulator serves a platform on two buses on two in-process buses; on
+    // virtual time (--lockstep) one bus only.
+    let platform = if a.lockstep {
+        load_platform_lockstep(a.common.config.as_deref(), a.common.profile)?
+    } else {
+        load_platform_profile(a.common.config.as_deref(), a.common.profile)?
+    };
     a.ros2.options(platform.n())?; // refuses --ros2-* options without --ros2
     let (traj, sc, name) = match &a.trajectory {
         Some(file) => {
@@ -133,7 +141,13 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
     let quiet = a.common.json;
     let stop = Arc::new(AtomicBool::new(false));
     let signalled = install_signals(stop.clone(), SignalAction::ControlledStop);
-    let mut sinks = Sinks::new(&name, &plan, "vcan0", origin, meta)?;
+    let mut sinks = Sinks::new(
+        &name,
+        &plan,
+        demo_interfaces(platform.buses()),
+        origin,
+        meta,
+    )?;
     sinks.summary.timing = core.trajectory_timing();
     let max_cycles = ((duration + 20.0) * platform.cycle_hz) as u64;
     if !quiet {
@@ -142,10 +156,15 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
             None => format!("scenario {name}"),
         };
         errln!(
-            "demo: {what} ({}), controller {}, {} on the in-process bus",
+            "demo: {what} ({}), controller {}, {} on the in-process bus{}",
             timing_text(&core, duration),
             format!("{controller:?}").to_lowercase(),
-            if a.lockstep { "lockstep" } else { "real time" }
+            if a.lockstep { "lockstep" } else { "real time" },
+            if platform.buses() > 1 {
+                format!("es ({}, one per platform bus)", platform.buses())
+            } else {
+                String::new()
+            }
         );
     }
     if a.lockstep {
@@ -163,6 +182,13 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
         run_demo_realtime(&mut core, sim, &mut sinks, &stop, duration, quiet)?;
     }
     finish(sinks, &core, &a.common, signalled.load(Ordering::SeqCst))
+}
+
+/// The interface names the demos log their buses' frames on: vcan0 (and vcan1 for a
+/// platform on two buses).
+pub(crate) fn demo_interfaces(buses: usize) -> &'static [&'static str] {
+    const NAMES: [&str; 2] = ["vcan0", "vcan1"];
+    &NAMES[..buses.clamp(1, NAMES.len())]
 }
 
 /// The trajectory's durations for the start line: "12.3 s" when it runs as given, "12.3 s
@@ -272,14 +298,14 @@ pub(crate) fn run_demo_realtime(
     duration: f64,
     quiet: bool,
 ) -> Result<(), CliError> {
-    let (mut ctrl_node, sim_node) = wall_bus();
-    let _sim = SimThread::start(sim, sim_node)?;
+    let (mut ctrl_nodes, sim_nodes) = wall_buses(core.platform().buses());
+    let _sim = SimThread::start(sim, sim_nodes)?;
     let show = !quiet && std::io::stderr().is_terminal();
     let mut last_print = std::time::Instant::now();
     let origin = sinks.time_origin;
     let report = run_cycle(
         core,
-        &mut ctrl_node,
+        &mut as_buses(&mut ctrl_nodes),
         sinks,
         stop,
         Ports {
@@ -338,7 +364,7 @@ pub(crate) fn run_bus(a: RunArgs) -> Result<i32, CliError> {
             )));
         }
     }
-    let platform = load_platform_as(a.common.config.as_deref(), a.common.profile)?;
+    let platform = load_platform_on(a.common.config.as_deref(), a.common.profile, &a.bus)?;
     let (traj, sc) = scenario::trajectory_arg(&a.trajectory, &platform)?;
     let cfg = runtime_config(&a.common, sc)?;
     let name = sc
@@ -348,15 +374,21 @@ pub(crate) fn run_bus(a: RunArgs) -> Result<i32, CliError> {
     plan.check()?;
     let mut core = CycleCore::new(platform.clone(), traj, cfg)?;
     let duration = core.reference_duration();
-    let mut canbus = bus::open(&a.bus)?;
+    let mut canbuses: Vec<Box<dyn CanBus>> = a
+        .bus
+        .iter()
+        .map(|b| bus::open(b))
+        .collect::<Result<_, _>>()?;
+    let mut buses = super::rt::boxed_buses(&mut canbuses);
     let origin = unix_now();
     let mut meta = BTreeMap::new();
-    meta.insert("bus".into(), a.bus.clone());
+    meta.insert("bus".into(), a.bus.join(","));
     meta.insert("trajectory".into(), a.trajectory.clone());
     let stop = Arc::new(AtomicBool::new(false));
     let signalled = install_signals(stop.clone(), SignalAction::ControlledStop);
     // The interface name as candump logs it ("vcan0", also for socketcand://HOST:PORT/vcan0).
-    let mut sinks = Sinks::new(&name, &plan, canbus.name(), origin, meta)?;
+    let names: Vec<&str> = buses.iter().map(|b| b.name()).collect();
+    let mut sinks = Sinks::new(&name, &plan, &names, origin, meta)?;
     sinks.summary.timing = core.trajectory_timing();
     if let Some(d) = a.duration {
         let stop = stop.clone();
@@ -369,13 +401,13 @@ pub(crate) fn run_bus(a: RunArgs) -> Result<i32, CliError> {
         errln!(
             "run: {} on {} ({})",
             name,
-            a.bus,
+            a.bus.join(" and "),
             timing_text(&core, duration)
         );
     }
     let report = run_cycle(
         &mut core,
-        canbus.as_mut(),
+        &mut buses,
         &mut sinks,
         &stop,
         Ports::default(),
