@@ -20,6 +20,6 @@ pub use faults::{FaultArgs, FaultSchedule};
 pub use firmware::{FirmwareConfig, FirmwareStats, ModuleFirmware};
 pub use plant::{InitialState, MotorSetpoint, Plant, PlantConfig, PlantTruth, SensorReading};
 pub use sim::{
-    run_realtime, run_realtime_buses, spawn_realtime, spawn_realtime_at_priority, ClockMap,
-    RealtimeSummary, SimConfig, SimHandle, SimStats, Simulator,
+    run_realtime, run_realtime_buses, spawn_realtime, spawn_realtime_at_priority,
+    spawn_realtime_buses, ClockMap, RealtimeSummary, SimConfig, SimHandle, SimStats, Simulator,
 };

@@ -1119,6 +1119,43 @@ pub fn spawn_realtime(
     })
 }
 
+/// [`run_realtime_buses`] on its own thread (`buses[b]` carries the devices of the wheels with
+/// `bus = b`), first asking for SCHED_FIFO `priority` when given (as
+/// [`spawn_realtime_at_priority`], whose lines the receiver gets; none without a priority).
+/// One bus runs exactly as [`spawn_realtime`] / [`spawn_realtime_at_priority`].
+pub fn spawn_realtime_buses(
+    mut sim: Simulator,
+    mut buses: Vec<Box<dyn CanBus>>,
+    stop: Arc<AtomicBool>,
+    duration: Option<Duration>,
+    priority: Option<i32>,
+) -> (SimHandle, std::sync::mpsc::Receiver<String>) {
+    let (tx, rx) = std::sync::mpsc::channel();
+    let h = std::thread::spawn(move || {
+        if let Some(priority) = priority {
+            let lines = rollbase_control::runtime::realtime_setup(
+                &rollbase_control::runtime::RealtimeOptions {
+                    fifo_priority: Some(priority),
+                    lock_memory: true,
+                    max_cycles: None,
+                },
+            );
+            for l in lines {
+                let _ = tx.send(l.replace("cycle thread", "simulator thread"));
+            }
+        }
+        drop(tx);
+        let mut refs: Vec<&mut dyn CanBus> = buses
+            .iter_mut()
+            .map(|b| &mut **b as &mut dyn CanBus)
+            .collect();
+        let r = run_realtime_buses(&mut sim, &mut refs, &stop, duration);
+        drop(refs);
+        (sim, r)
+    });
+    (h, rx)
+}
+
 /// [`spawn_realtime`] on a thread that first asks for SCHED_FIFO `priority` (the simulated
 /// modules stand in for hardware, which never waits for a busy host). The returned receiver
 /// gets one line saying whether the priority was granted (without CAP_SYS_NICE or an rtprio

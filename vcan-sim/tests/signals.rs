@@ -118,7 +118,31 @@ fn what_it_refuses_before_starting_exits_2_naming_the_input() {
     let bad = dir.join("bad.toml");
     std::fs::write(&bad, "[[waypoints]]\nx = \"far\"\n").unwrap();
     let missing = dir.join("missing.toml");
+    let six = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../docs/examples/six-wheel.toml"
+    );
     for (args, needle) in [
+        // A platform on two buses with one `--bus`, one bus with two, the same bus twice.
+        (
+            vec!["--config", six, "--bus", "nosuchcan7"],
+            "on 2 CAN bus(es) but 1 `--bus`",
+        ),
+        (
+            vec!["--bus", "nosuchcan7", "--bus", "nosuchcan8"],
+            "on 1 CAN bus(es) but 2 `--bus`",
+        ),
+        (
+            vec![
+                "--config",
+                six,
+                "--bus",
+                "nosuchcan7",
+                "--bus",
+                "nosuchcan7",
+            ],
+            "`--bus nosuchcan7` given twice",
+        ),
         (
             vec!["--bus", "virtual", "--start", bad.to_str().unwrap()],
             "bad.toml",
@@ -136,4 +160,23 @@ fn what_it_refuses_before_starting_exits_2_naming_the_input() {
         assert!(err.contains(needle), "{args:?}: {err}");
     }
     let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn a_platform_on_two_buses_runs_on_two() {
+    let six = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../docs/examples/six-wheel.toml"
+    );
+    let out = sim()
+        .args(["--config", six, "--bus", "virtual", "--bus", "virtual"])
+        .args(["--duration", "0.3", "--priority", "0"])
+        .output()
+        .expect("run rollbase-sim");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{err}");
+    assert!(
+        err.contains("6 modules (nodes [1, 2, 3, 4, 5, 6]) of platform `six-wheel` on rollbase-sim and rollbase-sim"),
+        "{err}"
+    );
 }

@@ -1,7 +1,7 @@
 //! `rollbase-sim`: the simulated wheel modules and platform on a CAN bus, in real time.
 //!
 //! ```text
-//! rollbase-sim --bus vcan0 [--config platform.toml] [--profile native|cia402]
+//! rollbase-sim --bus vcan0 [--bus vcan1] [--config platform.toml] [--profile native|cia402]
 //!              [--plant plant.toml] [--faults faults.toml] [--loss P]
 //!              [--silent NODE:FROM:TO] … [--seed N] [--duration S]
 //!              [--start nominal|scenario:NAME|waypoints.toml]
@@ -20,6 +20,12 @@
 //! SIGPIPE is ignored and every write to stdout/stderr ignores errors (a closed terminal or a
 //! `| head` that went away).
 //!
+//! A platform with wheels on two buses (`bus = 0|1` in its file) takes one `--bus` per
+//! platform bus, in order (the first carries the devices of the wheels with `bus = 0`, the
+//! second those with `bus = 1`): each device sends on its own bus and hears only its own bus's
+//! frames (its SYNC among them). A number of `--bus` options that differs from the platform's
+//! buses, or the same interface twice, exits 2 before anything runs.
+//!
 //! `--bus virtual` creates an in-process virtual bus that no other process can reach: it is
 //! only useful to check a configuration. To run the controller against the simulator without
 //! kernel CAN, use `rollbase demo`, which starts this simulator in-process on a shared
@@ -29,8 +35,7 @@ use clap::Parser;
 use rollbase_control::Platform;
 use rollbase_driver::bus::{self, BusClock, BusError, CanBus, VirtualBus, VirtualBusConfig};
 use rollbase_vcan_sim::{
-    spawn_realtime, spawn_realtime_at_priority, FaultArgs, PlantConfig, SimConfig, SimError,
-    Simulator,
+    spawn_realtime_buses, FaultArgs, PlantConfig, SimConfig, SimError, Simulator,
 };
 use std::io::Write;
 use std::path::PathBuf;
@@ -50,9 +55,11 @@ macro_rules! say {
 #[derive(Debug, Parser)]
 #[command(name = "rollbase-sim", version, about, long_about = None)]
 struct Cli {
-    /// CAN interface (vcan0, can0, …) or `virtual` (in-process only; see `rollbase demo`).
-    #[arg(long)]
-    bus: String,
+    /// CAN interface (vcan0, can0, …) or `virtual` (in-process only; see `rollbase demo`). A
+    /// platform on two buses takes two, in order: the first carries the wheels with
+    /// `bus = 0`, the second those with `bus = 1`.
+    #[arg(long, required = true)]
+    bus: Vec<String>,
     /// Platform description (TOML); default: the Justin-like platform.
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
@@ -103,6 +110,14 @@ enum CliError {
         source: BusError,
         hint: &'static str,
     },
+    #[error("platform `{platform}` puts its wheels on {buses} CAN bus(es) but {given} `--bus` option(s) were given: give one `--bus` per platform bus, in order (the first carries the wheels with `bus = 0`, the second those with `bus = 1`)")]
+    BusCount {
+        platform: String,
+        buses: usize,
+        given: usize,
+    },
+    #[error("`--bus {0}` given twice: each platform bus needs its own interface")]
+    BusTwice(String),
     #[error("`{option}` = {value}: {reason}")]
     Option {
         option: &'static str,
@@ -170,6 +185,19 @@ fn run(cli: Cli) -> Result<(), CliError> {
     if let Some(profile) = cli.profile {
         platform.protocol = profile;
         platform.validate().map_err(SimError::from)?;
+    }
+    if cli.bus.len() != platform.buses() {
+        return Err(CliError::BusCount {
+            platform: platform.name.clone(),
+            buses: platform.buses(),
+            given: cli.bus.len(),
+        });
+    }
+    for (k, b) in cli.bus.iter().enumerate() {
+        // Each `virtual` is a bus of its own.
+        if b != "virtual" && cli.bus[..k].contains(b) {
+            return Err(CliError::BusTwice(b.clone()));
+        }
     }
     let plant = match &cli.plant {
         Some(p) => PlantConfig::load(p)?,
@@ -239,7 +267,16 @@ fn run(cli: Cli) -> Result<(), CliError> {
         ..SimConfig::default()
     };
     let sim = Simulator::with_config(&platform, cfg)?;
-    let bus = open_bus(&cli.bus)?;
+    let buses = cli
+        .bus
+        .iter()
+        .map(|b| open_bus(b))
+        .collect::<Result<Vec<_>, _>>()?;
+    let names = buses
+        .iter()
+        .map(|b| b.name().to_string())
+        .collect::<Vec<_>>()
+        .join(" and ");
     // SIGINT and SIGTERM are both a clean stop; their handlers are in place before the
     // simulator says it runs (a signal sent right after that line must not kill it). Should
     // one not install, the simulator still runs (and says so).
@@ -271,7 +308,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
             sim.n(),
             sim.nodes(),
             platform.name,
-            bus.name()
+            names
         ),
         rollbase_control::Protocol::Cia402 => say!(
             "rollbase-sim: CiA 402 profile, {} wheels = {} CANopen devices (nodes {:?}) of platform `{}` on {}; booting, then waiting for the master. Ctrl-C to stop.",
@@ -279,19 +316,15 @@ fn run(cli: Cli) -> Result<(), CliError> {
             sim.nodes().len(),
             sim.nodes(),
             platform.name,
-            bus.name()
+            names
         ),
     }
     let stop = Arc::new(AtomicBool::new(false));
-    let handle = if cli.priority == 0 {
-        spawn_realtime(sim, bus, stop.clone(), duration)
-    } else {
-        let (h, lines) = spawn_realtime_at_priority(sim, bus, stop.clone(), duration, cli.priority);
-        for l in lines.iter() {
-            say!("rollbase-sim: {l}");
-        }
-        h
-    };
+    let priority = (cli.priority != 0).then_some(cli.priority);
+    let (handle, lines) = spawn_realtime_buses(sim, buses, stop.clone(), duration, priority);
+    for l in lines.iter() {
+        say!("rollbase-sim: {l}");
+    }
     rt.block_on(async {
         loop {
             tokio::select! {
