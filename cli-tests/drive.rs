@@ -1117,3 +1117,109 @@ fn teleop_on_a_terminal_drives_forward_quits_on_esc_and_restores_the_terminal() 
         "teleop left the terminal without line editing"
     );
 }
+
+/// Two CAN buses as processes (issue 25): the six-wheel example (wheels 1–3 on bus 0, 4–6 on
+/// bus 1) with the bridge's channels vcan0 and vcan1 as its two buses, `rollbase-sim` serving
+/// each bus's devices on its own channel and `rollbase drive` with one `--bus` per platform
+/// bus: a short forward drive ends at rest with the estimate on the simulator's truth, one
+/// SYNC per bus per cycle and every wheel's frames on its own bus (the candump log).
+#[test]
+fn a_platform_on_two_buses_drives_with_one_bus_option_each() {
+    let _serial = serial();
+    stall_tolerant("two buses", || {
+        let six = concat!(env!("CARGO_MANIFEST_DIR"), "/docs/examples/six-wheel.toml");
+        let dir = scratch("two-buses");
+        let log = dir.join("two.log");
+        let mut bridge = Proc::spawn(
+            "rollbase bridge",
+            fifo(&mut rollbase(), 60)
+                .args(["bridge", "--listen", "127.0.0.1:0"])
+                .env("RUST_LOG", "info")
+                .stdin(Stdio::null()),
+        );
+        let line = bridge.wait_for("listening on 127.0.0.1:");
+        let port: u16 = line
+            .split("listening on 127.0.0.1:")
+            .nth(1)
+            .and_then(|r| r.split(|c: char| !c.is_ascii_digit()).next())
+            .and_then(|p| p.parse().ok())
+            .unwrap_or_else(|| panic!("no port in `{line}`"));
+        let url = |ch: &str| format!("socketcand://127.0.0.1:{port}/{ch}");
+        let (bus0, bus1) = (url("vcan0"), url("vcan1"));
+        let mut sim = Proc::spawn(
+            "rollbase-sim",
+            fifo(&mut Command::new(sim_binary()), 81)
+                .args(["--config", six, "--bus", &bus0, "--bus", &bus1])
+                .stdin(Stdio::null()),
+        );
+        sim.wait_for("Ctrl-C to stop.");
+        let mut drive = Proc::spawn(
+            "rollbase drive",
+            rollbase()
+                .args(["drive", "--config", six, "--bus", &bus0, "--bus", &bus1])
+                .args(["--commands", "-", "--json", "--candump"])
+                .arg(&log)
+                .env("RUST_LOG", "info")
+                .stdin(Stdio::piped()),
+        );
+        let mut stdin = drive.take_stdin();
+        let mut lines = Vec::new();
+        hold(&mut lines, 0.0, 1.2, 0.2, 0.0, 0.0);
+        for line in &lines {
+            writeln!(stdin, "{line}").expect("write a command line");
+        }
+        drop(stdin);
+        let (status, stdout) = drive.wait();
+        let stderr = drive.stderr();
+        assert_eq!(status.code(), Some(0), "{status}\n{stdout}\n{stderr}");
+        let s = summary(&stdout);
+        assert_eq!(s["supervisor_final_state"], "stopped", "{s}");
+        assert!(s["fault_reason"].is_null(), "{s}");
+        let cycles = s["cycles"].as_u64().expect("cycles");
+        let misses = s["deadline_misses"].as_u64().expect("misses");
+        let text = std::fs::read_to_string(&log).expect("candump log");
+        let mut syncs = [0u64; 2];
+        let mut wrong = Vec::new();
+        for l in text.lines() {
+            let mut f = l.split_whitespace();
+            let (_, iface, frame) = (f.next(), f.next().unwrap(), f.next().unwrap());
+            let id = u16::from_str_radix(frame.split('#').next().unwrap(), 16).unwrap();
+            let bus = match iface {
+                "vcan0" => 0,
+                "vcan1" => 1,
+                other => panic!("frame on {other}: {l}"),
+            };
+            let node = id & 0x7F;
+            if id == 0x080 {
+                syncs[bus] += 1;
+            } else if !(1..=6).contains(&node) || usize::from((node - 1) / 3) != bus {
+                wrong.push(l.to_string());
+            }
+        }
+        let truth = stop_sim(&mut sim);
+        let est = [
+            s["final_pose"]["x"].as_f64().unwrap(),
+            s["final_pose"]["y"].as_f64().unwrap(),
+            s["final_pose"]["theta"].as_f64().unwrap(),
+        ];
+        eprintln!(
+            "two buses: {cycles} cycles, {misses} deadline misses, SYNCs {syncs:?}, true pose {truth:?}, estimate {est:?}"
+        );
+        assert_eq!(syncs, [cycles, cycles], "one SYNC per bus per cycle");
+        assert!(
+            wrong.is_empty(),
+            "frames on the wrong bus: {:?}",
+            &wrong[..wrong.len().min(5)]
+        );
+        assert_estimate_near_truth(&est, &truth);
+        // About 0.3 m straight ahead (1.0 s of commands plus the 0.5 s the last one holds, at
+        // 0.2 m/s, minus the ramps): every wheel on both buses drove.
+        let [x, y, theta] = truth;
+        assert!((0.2..0.4).contains(&x), "x = {x} m");
+        assert!(
+            y.abs() < 0.01 && theta.abs() < 0.01,
+            "y = {y} m, θ = {theta} rad"
+        );
+        let _ = std::fs::remove_dir_all(dir);
+    });
+}
