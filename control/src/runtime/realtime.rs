@@ -667,6 +667,107 @@ mod tests {
 }
 
 #[cfg(test)]
+mod two_bus_off_tests {
+    use super::tests_support::OffOnce;
+    use super::*;
+    use crate::model::platform::Platform;
+    use crate::runtime::command_channel::command_channel;
+    use crate::runtime::RuntimeConfig;
+    use crate::service::ports::{CommandEvent, CommandKind};
+    use std::sync::atomic::AtomicU32;
+    use std::sync::Arc;
+
+    #[test]
+    fn a_bus_off_on_bus_1_is_reported_on_bus_1_and_only_bus_1_is_reopened() {
+        let mut core =
+            CycleCore::new_live(Platform::six_wheel(), RuntimeConfig::default()).expect("core");
+        let reopened = [Arc::new(AtomicU32::new(0)), Arc::new(AtomicU32::new(0))];
+        // Bus 0 never goes bus-off (already "told"); bus 1 does at its first receive.
+        let mut b0 = OffOnce {
+            told: true,
+            reopened: Arc::clone(&reopened[0]),
+        };
+        let mut b1 = OffOnce {
+            told: false,
+            reopened: Arc::clone(&reopened[1]),
+        };
+        let (tx, rx) = command_channel(16, 16);
+        let stop = AtomicBool::new(false);
+        let opts = RealtimeOptions {
+            fifo_priority: None,
+            lock_memory: false,
+            max_cycles: Some(100),
+        };
+        let report = std::thread::scope(|s| {
+            s.spawn(|| {
+                std::thread::sleep(std::time::Duration::from_millis(100));
+                let _ = tx.try_send(CommandEvent {
+                    t: 0.0,
+                    kind: CommandKind::Rearm,
+                });
+            });
+            let io = RealtimeIo {
+                commands: Some(&rx),
+                ..Default::default()
+            };
+            run_realtime_buses(&mut core, &mut [&mut b0, &mut b1], &stop, &io, &opts, 0)
+                .expect("two buses")
+        });
+        assert_eq!(report.bus_errors, 1, "{report:?}");
+        assert_eq!(
+            reopened[0].load(Ordering::SeqCst),
+            0,
+            "bus 0 kept its socket"
+        );
+        assert_eq!(reopened[1].load(Ordering::SeqCst), 1, "bus 1 reopened once");
+        let d = core.base_state().diagnostics.can;
+        assert_eq!(d[1].count(BusEvent::BusOff), 1, "{d:?}");
+        assert_eq!(d[0].count(BusEvent::BusOff), 0, "{d:?}");
+    }
+}
+
+#[cfg(test)]
+mod tests_support {
+    use rollbase_driver::bus::{BusError, CanBus};
+    use rollbase_driver::frame::{CanFrame, TimestampedFrame};
+    use std::sync::atomic::{AtomicU32, Ordering};
+    use std::sync::Arc;
+    use std::time::Instant;
+
+    /// A bus whose controller goes bus-off at the first receive (unless `told`); counts
+    /// `reopen` calls.
+    pub(super) struct OffOnce {
+        pub(super) told: bool,
+        pub(super) reopened: Arc<AtomicU32>,
+    }
+
+    impl CanBus for OffOnce {
+        fn send(&mut self, _: &CanFrame) -> Result<(), BusError> {
+            Ok(())
+        }
+        fn try_recv(&mut self) -> Result<Option<TimestampedFrame>, BusError> {
+            if !self.told {
+                self.told = true;
+                return Err(BusError::BusOff {
+                    iface: "can9".into(),
+                });
+            }
+            Ok(None)
+        }
+        fn recv_until(&mut self, _: Instant) -> Result<Option<TimestampedFrame>, BusError> {
+            self.try_recv()
+        }
+        fn name(&self) -> &str {
+            "can9"
+        }
+        fn reopen(&mut self) -> Result<(), BusError> {
+            self.reopened.fetch_add(1, Ordering::SeqCst);
+            Ok(())
+        }
+    }
+}
+
+#[cfg(test)]
 mod bus_count_tests {
     use super::*;
     use crate::model::platform::Platform;
