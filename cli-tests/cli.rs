@@ -219,6 +219,84 @@ fn cia402_bus_load_counts_8_drives_and_4_encoders_and_states_the_headroom() {
     assert!(text.contains("verdict: DOES NOT FIT"), "{text}");
 }
 
+/// The bus-load text of `rollbase bus-load ARGS…`, split into its per-bus tables (one table
+/// when the platform has one bus).
+fn bus_load_tables(args: &[&str]) -> Vec<Vec<(String, f64, f64)>> {
+    let out = rollbase().arg("bus-load").args(args).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8(out.stdout).unwrap();
+    let parts: Vec<&str> = text.split("## bus ").collect();
+    if parts.len() == 1 {
+        return vec![bus_load_rows(&text)];
+    }
+    assert!(
+        parts[0].trim().is_empty(),
+        "text before the first table:\n{text}"
+    );
+    parts[1..].iter().map(|t| bus_load_rows(t)).collect()
+}
+
+#[test]
+fn bus_load_of_a_two_bus_platform_is_one_table_per_bus_with_its_own_wheels_and_sync() {
+    let _serial = serial();
+    let six = concat!(env!("CARGO_MANIFEST_DIR"), "/docs/examples/six-wheel.toml");
+    for profile in ["native", "cia402"] {
+        let tables = bus_load_tables(&["--config", six, "--profile", profile]);
+        assert_eq!(tables.len(), 2, "{profile}: one table per bus");
+        let row = |t: &[(String, f64, f64)], name: &str| {
+            t.iter()
+                .find(|r| r.0 == name)
+                .unwrap_or_else(|| panic!("{profile}: no `{name}` row in {t:?}"))
+                .clone()
+        };
+        // Three wheels on each bus (docs/examples/six-wheel.toml), each bus its own SYNC.
+        let (setpoints, feedback) = if profile == "native" {
+            ("SETPOINT", "FEEDBACK_A")
+        } else {
+            ("RPDO1 drive", "TPDO1 enc")
+        };
+        for t in &tables {
+            assert_eq!(row(t, "SYNC").1, 1.0, "{profile}: {t:?}");
+            let per_wheel = if profile == "native" { 1.0 } else { 2.0 };
+            assert_eq!(row(t, setpoints).1, 3.0 * per_wheel, "{profile}: {t:?}");
+            assert_eq!(row(t, feedback).1, 3.0, "{profile}: {t:?}");
+        }
+        // The same six wheels all on bus 0: one table; the two buses together carry exactly
+        // that plus one more SYNC (and, CiA 402, one more master heartbeat) per cycle.
+        let one_bus = std::env::temp_dir().join(format!(
+            "rollbase-cli-six-one-bus-{}-{profile}.toml",
+            std::process::id()
+        ));
+        let text = std::fs::read_to_string(six).unwrap();
+        std::fs::write(&one_bus, text.replace("bus = 1", "bus = 0")).unwrap();
+        let all = bus_load_tables(&["--config", one_bus.to_str().unwrap(), "--profile", profile]);
+        std::fs::remove_file(&one_bus).unwrap();
+        assert_eq!(all.len(), 1, "{profile}: all wheels on bus 0 is one table");
+        let per_bus = row(&tables[0], "total").2;
+        let extra = row(&all[0], "SYNC").2
+            + if profile == "cia402" {
+                row(&all[0], "master hb").2
+            } else {
+                0.0
+            };
+        let together = per_bus + row(&tables[1], "total").2;
+        assert!(
+            (together - (row(&all[0], "total").2 + extra)).abs() < 0.03,
+            "{profile}: {together}% on two buses against {}% on one plus {extra}%",
+            row(&all[0], "total").2
+        );
+        assert_eq!(
+            per_bus,
+            row(&tables[1], "total").2,
+            "{profile}: both buses alike"
+        );
+    }
+}
+
 #[test]
 fn cia402_platform_file_round_trips_and_bad_fields_are_named() {
     let _serial = serial();

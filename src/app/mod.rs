@@ -156,8 +156,8 @@ struct PlotArgs {
 
 #[derive(Args, Debug)]
 struct BusLoadArgs {
-    /// Platform file (its wheel count and cycle rate are used, and for the CiA 402 profile
-    /// its `[cia402]` timing).
+    /// Platform file (its wheels, per bus, and cycle rate are used, and for the CiA 402
+    /// profile its `[cia402]` timing); a platform on two buses gets one table per bus.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Wire profile: native or cia402; default: the platform file's `protocol`.
@@ -231,24 +231,42 @@ pub fn run(cli: Cli) -> Result<i32, CliError> {
                     "--bitrate 0: give the bus bit rate in bit/s, e.g. 1000000".into(),
                 ));
             }
-            match p.protocol {
-                Protocol::Native => {
-                    let cfg = rollbase_driver::busload::BusLoadConfig {
-                        modules: p.n(),
-                        cycle_hz: p.cycle_hz,
-                        bitrate: a.bitrate,
-                        ..Default::default()
-                    };
-                    out!("{}", rollbase_driver::busload::report(&cfg));
-                }
-                Protocol::Cia402 => {
-                    let l = rollbase_driver::canopen::busload::load(
-                        &p.cia402(),
-                        p.n(),
-                        p.cycle_hz,
-                        a.bitrate,
+            // One table per bus: each bus carries only its own wheels' frames, with its own
+            // SYNC (and, CiA 402, the master's heartbeat) every cycle.
+            let nb = p.buses();
+            for b in 0..nb {
+                let wheels: Vec<usize> = p.wheels_on_bus(b).collect();
+                if nb > 1 {
+                    let names: Vec<String> = wheels.iter().map(|w| (w + 1).to_string()).collect();
+                    outln!(
+                        "## bus {b} of {nb} (`bus = {b}`, the {} `--bus`): wheels {}",
+                        if b == 0 { "first" } else { "second" },
+                        names.join(", ")
                     );
-                    outln!("{l}");
+                    outln!();
+                }
+                match p.protocol {
+                    Protocol::Native => {
+                        let cfg = rollbase_driver::busload::BusLoadConfig {
+                            modules: wheels.len(),
+                            cycle_hz: p.cycle_hz,
+                            bitrate: a.bitrate,
+                            ..Default::default()
+                        };
+                        out!("{}", rollbase_driver::busload::report(&cfg));
+                    }
+                    Protocol::Cia402 => {
+                        let l = rollbase_driver::canopen::busload::load(
+                            &p.cia402(),
+                            wheels.len(),
+                            p.cycle_hz,
+                            a.bitrate,
+                        );
+                        outln!("{l}");
+                    }
+                }
+                if nb > 1 && b + 1 < nb {
+                    outln!();
                 }
             }
             Ok(0)
