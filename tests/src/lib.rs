@@ -677,3 +677,49 @@ pub fn run_buses(opts: &RunOptions, lose: Option<(usize, f64)>) -> RunOutcome {
         timing: None,
     }
 }
+
+/// The simulated modules of a real-time test on their own thread, as the demo runs them: at
+/// SCHED_FIFO 81 (they stand in for hardware, which never waits for a busy host; without the
+/// privilege they run at normal priority), serving one bus per platform bus
+/// ([`rollbase_vcan_sim::run_realtime_buses`]) until [`RealtimeSim::finish`].
+pub struct RealtimeSim {
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    handle: std::thread::JoinHandle<
+        Result<rollbase_vcan_sim::RealtimeSummary, rollbase_vcan_sim::SimError>,
+    >,
+}
+
+impl RealtimeSim {
+    /// Starts `sim` on `buses` (`buses[b]` for the wheels with `bus = b`).
+    pub fn start(
+        mut sim: Simulator,
+        mut buses: Vec<rollbase_driver::bus::virtual_bus::VirtualNode>,
+    ) -> Self {
+        use rollbase_driver::bus::CanBus;
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let s2 = stop.clone();
+        let handle = std::thread::spawn(move || {
+            let _ = rollbase_control::runtime::realtime_setup(
+                &rollbase_control::runtime::RealtimeOptions {
+                    fifo_priority: Some(81),
+                    lock_memory: false,
+                    max_cycles: None,
+                },
+            );
+            let mut refs: Vec<&mut dyn CanBus> =
+                buses.iter_mut().map(|b| b as &mut dyn CanBus).collect();
+            rollbase_vcan_sim::run_realtime_buses(&mut sim, &mut refs, &s2, None)
+        });
+        Self { stop, handle }
+    }
+
+    /// Stops the simulator and returns its summary; panics (the test fails) when its thread
+    /// panicked or its run failed.
+    pub fn finish(self) -> rollbase_vcan_sim::RealtimeSummary {
+        self.stop.store(true, std::sync::atomic::Ordering::SeqCst);
+        self.handle
+            .join()
+            .expect("simulator thread")
+            .expect("simulator run")
+    }
+}

@@ -9,9 +9,9 @@ use rollbase_control::runtime::scenario::{self, Scenario};
 use rollbase_control::runtime::{percentile, run_realtime, CycleCore, RealtimeOptions};
 use rollbase_control::Platform;
 use rollbase_driver::bus::{BusClock, VirtualBus, VirtualBusConfig};
+use rollbase_tests::RealtimeSim;
 use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
 
 #[test]
 fn three_seconds_in_real_time_close_the_loop_and_account_for_every_cycle() {
@@ -20,25 +20,13 @@ fn three_seconds_in_real_time_close_the_loop_and_account_for_every_cycle() {
     let r0 = traj.sample(0.0);
     let mut core =
         CycleCore::new(p.clone(), traj, scenario::runtime_config(Scenario::Seed000)).unwrap();
-    let mut sim =
-        Simulator::new(&p, PlantConfig::default(), FaultSchedule::default(), &r0, 3).unwrap();
+    let sim = Simulator::new(&p, PlantConfig::default(), FaultSchedule::default(), &r0, 3).unwrap();
     let bus = VirtualBus::new(VirtualBusConfig {
         clock: BusClock::Wall,
         ..Default::default()
     });
     let mut ctrl = bus.node("controller");
-    let mut simnode = bus.node("simulator");
-    let sim_stop = Arc::new(AtomicBool::new(false));
-    let ss = sim_stop.clone();
-    let sim_thread = std::thread::spawn(move || {
-        // The simulated modules stand in for hardware: same real-time treatment as the demo.
-        let _ = rollbase_control::runtime::realtime_setup(&RealtimeOptions {
-            fifo_priority: Some(81),
-            lock_memory: false,
-            max_cycles: None,
-        });
-        sim.run_realtime(&mut simnode, &ss)
-    });
+    let sim_thread = RealtimeSim::start(sim, vec![bus.node("simulator")]);
     let (tx, rx) = std::sync::mpsc::sync_channel(4096);
     let stop = AtomicBool::new(false);
     let opts = RealtimeOptions {
@@ -47,8 +35,7 @@ fn three_seconds_in_real_time_close_the_loop_and_account_for_every_cycle() {
     };
     let report = run_realtime(&mut core, &mut ctrl, &stop, Some(&tx), &opts, 0);
     drop(tx);
-    sim_stop.store(true, Ordering::SeqCst);
-    sim_thread.join().unwrap().unwrap();
+    sim_thread.finish();
     let records: Vec<_> = rx.iter().collect();
     let periods: Vec<f64> = records.iter().skip(1).map(|r| r.timing.period_us).collect();
     let compute: Vec<f64> = records.iter().map(|r| r.timing.compute_us).collect();

@@ -14,9 +14,9 @@ use rollbase_control::runtime::{
 use rollbase_control::Platform;
 use rollbase_driver::bus::{BusClock, BusError, CanBus, VirtualBus, VirtualBusConfig};
 use rollbase_driver::frame::{CanFrame, TimestampedFrame};
+use rollbase_tests::RealtimeSim;
 use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 /// SYNC's identifier in the native protocol (driver/src/protocol.rs).
@@ -83,8 +83,7 @@ fn six_wheels_on_two_buses_in_real_time() {
     let mut cfg = scenario::runtime_config(Scenario::Seed000);
     cfg.controller = ControllerKind::Dfl;
     let mut core = CycleCore::new(p.clone(), traj, cfg).unwrap();
-    let mut sim =
-        Simulator::new(&p, PlantConfig::default(), FaultSchedule::default(), &r0, 3).unwrap();
+    let sim = Simulator::new(&p, PlantConfig::default(), FaultSchedule::default(), &r0, 3).unwrap();
     let wall = || {
         VirtualBus::new(VirtualBusConfig {
             clock: BusClock::Wall,
@@ -94,18 +93,7 @@ fn six_wheels_on_two_buses_in_real_time() {
     let (bus0, bus1) = (wall(), wall());
     let mut ctrl0 = Tap::new(bus0.node("controller"));
     let mut ctrl1 = Tap::new(bus1.node("controller"));
-    let mut sim0 = bus0.node("simulator");
-    let mut sim1 = bus1.node("simulator");
-    let sim_stop = Arc::new(AtomicBool::new(false));
-    let ss = sim_stop.clone();
-    let sim_thread = std::thread::spawn(move || {
-        let _ = rollbase_control::runtime::realtime_setup(&RealtimeOptions {
-            fifo_priority: Some(81),
-            lock_memory: false,
-            max_cycles: None,
-        });
-        rollbase_vcan_sim::run_realtime_buses(&mut sim, &mut [&mut sim0, &mut sim1], &ss, None)
-    });
+    let sim_thread = RealtimeSim::start(sim, vec![bus0.node("simulator"), bus1.node("simulator")]);
     let (tx, rx) = std::sync::mpsc::sync_channel(4096);
     let stop = AtomicBool::new(false);
     let cycles = 500;
@@ -127,8 +115,7 @@ fn six_wheels_on_two_buses_in_real_time() {
     )
     .expect("two buses for a two-bus platform");
     drop(tx);
-    sim_stop.store(true, Ordering::SeqCst);
-    let sim_summary = sim_thread.join().unwrap().unwrap();
+    let sim_summary = sim_thread.finish();
     let records: Vec<_> = rx.iter().collect();
     let periods: Vec<f64> = records.iter().skip(1).map(|r| r.timing.period_us).collect();
     let last = records.last().expect("records");

@@ -14,9 +14,9 @@ use rollbase_control::runtime::{run_realtime, CycleCore, RealtimeOptions};
 use rollbase_control::Platform;
 use rollbase_driver::bus::{BusClock, BusError, CanBus, VirtualBus, VirtualBusConfig};
 use rollbase_driver::frame::{CanFrame, TimestampedFrame};
+use rollbase_tests::RealtimeSim;
 use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
 
 /// SYNC's identifier in the native protocol (driver/src/protocol.rs).
@@ -61,8 +61,7 @@ fn a_late_sync_still_gets_its_feedback_window() {
     let mut cfg = scenario::runtime_config(Scenario::Seed000);
     cfg.feedback_window = 0.001;
     let mut core = CycleCore::new(p.clone(), traj, cfg).unwrap();
-    let mut sim =
-        Simulator::new(&p, PlantConfig::default(), FaultSchedule::default(), &r0, 3).unwrap();
+    let sim = Simulator::new(&p, PlantConfig::default(), FaultSchedule::default(), &r0, 3).unwrap();
     let bus = VirtualBus::new(VirtualBusConfig {
         clock: BusClock::Wall,
         ..Default::default()
@@ -74,17 +73,7 @@ fn a_late_sync_still_gets_its_feedback_window() {
         delay: Duration::from_micros(2500),
         delayed: 0,
     };
-    let mut simnode = bus.node("simulator");
-    let sim_stop = Arc::new(AtomicBool::new(false));
-    let ss = sim_stop.clone();
-    let sim_thread = std::thread::spawn(move || {
-        let _ = rollbase_control::runtime::realtime_setup(&RealtimeOptions {
-            fifo_priority: Some(81),
-            lock_memory: false,
-            max_cycles: None,
-        });
-        sim.run_realtime(&mut simnode, &ss)
-    });
+    let sim_thread = RealtimeSim::start(sim, vec![bus.node("simulator")]);
     let (tx, rx) = std::sync::mpsc::sync_channel(4096);
     let stop = AtomicBool::new(false);
     let opts = RealtimeOptions {
@@ -93,8 +82,7 @@ fn a_late_sync_still_gets_its_feedback_window() {
     };
     let report = run_realtime(&mut core, &mut ctrl, &stop, Some(&tx), &opts, 0);
     drop(tx);
-    sim_stop.store(true, Ordering::SeqCst);
-    sim_thread.join().unwrap().unwrap();
+    sim_thread.finish();
     let records: Vec<_> = rx.iter().collect();
     // The cycles whose SYNC was held back (SYNC number = cycle number: one SYNC a cycle, no
     // cycle skipped while the run keeps up; records carry their cycle).
