@@ -25,4 +25,10 @@ impl LockstepPeer for Simulator {
     fn controller_bus_off(&self, now: Duration) -> bool {
         self.is_controller_bus_off(now)
     }
+    fn bus_of(&self, frame: &CanFrame) -> usize {
+        self.bus_of_node((frame.id() & 0x7F) as u8)
+    }
+    fn on_frame_on(&mut self, bus: usize, now: Duration, frame: &CanFrame) {
+        Simulator::on_frame_on(self, bus, now, frame);
+    }
 }

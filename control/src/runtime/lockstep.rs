@@ -27,6 +27,18 @@ pub trait LockstepPeer {
         let _ = now;
         false
     }
+    /// The bus (index into the platform's buses) a frame the peer sent goes out on, for
+    /// [`run_lockstep_buses`]. Default: bus 0.
+    fn bus_of(&self, frame: &CanFrame) -> usize {
+        let _ = frame;
+        0
+    }
+    /// A frame the controller sent on bus `bus`, for [`run_lockstep_buses`]. Default:
+    /// [`LockstepPeer::on_frame`].
+    fn on_frame_on(&mut self, bus: usize, now: Duration, frame: &CanFrame) {
+        let _ = bus;
+        self.on_frame(now, frame);
+    }
 }
 
 /// The lockstep bus: what [`run_lockstep`] needs from the in-process virtual bus.
@@ -412,19 +424,117 @@ pub fn run_lockstep_with(
     stop: &mut dyn FnMut(u64) -> bool,
     sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
 ) -> LockstepReport {
+    run_lockstep_buses(core, &mut [bus], peer, commands, max_cycles, stop, sink)
+}
+
+/// [`run_lockstep_with`] on every bus of the platform: `buses[b]` carries the frames of the
+/// platform's bus `b` (the core's SYNC and setpoints for it, [`CycleCore::start_cycle_buses`];
+/// the peer's frames on the bus [`LockstepPeer::bus_of`] names, delivered to the peer with
+/// [`LockstepPeer::on_frame_on`]). The cycle is [`lockstep_cycle`]'s without hooks, bus by
+/// bus: late frames taken before the SYNC, the feedback window, the setpoints. With one bus it
+/// gives [`run_lockstep_with`]'s records.
+#[allow(clippy::too_many_arguments)]
+pub fn run_lockstep_buses(
+    core: &mut CycleCore,
+    buses: &mut [&mut dyn LockstepBus],
+    peer: &mut dyn LockstepPeer,
+    commands: &[CommandEvent],
+    max_cycles: u64,
+    stop: &mut dyn FnMut(u64) -> bool,
+    sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
+) -> LockstepReport {
+    let nb = buses.len().clamp(1, 2);
+    assert!(
+        buses.len() == nb && nb >= core.buses(),
+        "one lockstep bus per platform bus"
+    );
     let mut report = LockstepReport::default();
     let wall = std::time::Instant::now();
-    let mut st = LockstepState::new(core);
+    let period = core.platform().dt();
+    let window = core.config().feedback_window.clamp(0.0, period);
+    let mut outs = [FrameBuf::new(), FrameBuf::new()];
+    let mut pending: Vec<(Duration, CanFrame)> = Vec::with_capacity(64);
+    let mut rx: Vec<(usize, f64, CanFrame)> = Vec::with_capacity(64);
     core.arm();
     let mut ready_at: Option<f64> = None;
     let mut next = 0usize;
     let mut stopped = false;
+    // The peer's frames up to `until`, each on its bus.
+    let flush = |peer: &mut dyn LockstepPeer,
+                 buses: &mut [&mut dyn LockstepBus],
+                 pending: &mut Vec<(Duration, CanFrame)>,
+                 until: Duration| {
+        peer.drain_tx(&mut |t, f| pending.push((t, f)));
+        pending.sort_by_key(|(t, _)| *t);
+        let mut sent = 0;
+        for (t, f) in pending.iter() {
+            if *t > until {
+                break;
+            }
+            let b = peer.bus_of(f).min(buses.len() - 1);
+            buses[b].set_time(*t);
+            let _ = buses[b].peer_send(f);
+            sent += 1;
+        }
+        pending.drain(..sent);
+    };
+    let deliver = |peer: &mut dyn LockstepPeer, buses: &mut [&mut dyn LockstepBus]| {
+        let one = buses.len() == 1;
+        for (b, bus) in buses.iter_mut().enumerate() {
+            while let Ok(Some(f)) = bus.peer_recv() {
+                if one {
+                    peer.on_frame(f.timestamp, &f.frame);
+                } else {
+                    peer.on_frame_on(b, f.timestamp, &f.frame);
+                }
+            }
+        }
+    };
+    let receive = |core: &mut CycleCore,
+                   buses: &mut [&mut dyn LockstepBus],
+                   rx: &mut Vec<(usize, f64, CanFrame)>| {
+        rx.clear();
+        for (b, bus) in buses.iter_mut().enumerate() {
+            loop {
+                match bus.controller_recv() {
+                    Ok(Some(f)) => rx.push((b, f.timestamp.as_secs_f64(), f.frame)),
+                    Ok(None) => break,
+                    Err(e) if e.bus_event().is_some() => {
+                        if let Some(ev) = e.bus_event() {
+                            core.report_bus_event(b, ev);
+                        }
+                    }
+                    Err(_) => {
+                        core.report_bus_error();
+                        break;
+                    }
+                }
+            }
+        }
+        // Two buses' frames in time order (one bus keeps the order it delivered them in).
+        if buses.len() > 1 {
+            rx.sort_by(|a, b| a.1.total_cmp(&b.1));
+        }
+    };
+    let send = |core: &mut CycleCore, buses: &mut [&mut dyn LockstepBus], outs: &[FrameBuf]| {
+        for (b, bus) in buses.iter_mut().enumerate() {
+            for f in outs[b].as_slice() {
+                match bus.controller_send(f) {
+                    Ok(()) => {}
+                    Err(e) => match e.bus_event() {
+                        Some(ev) => core.report_bus_event(b, ev),
+                        None => core.report_bus_error(),
+                    },
+                }
+            }
+        }
+    };
     for k in 0..max_cycles {
         if !stopped && stop(k) {
             stopped = true;
             core.request_stop();
         }
-        let t = st.time();
+        let t = k as f64 * period;
         if ready_at.is_none() && core.state() == SupervisorState::Tracking {
             ready_at = Some(t);
         }
@@ -438,19 +548,57 @@ pub fn run_lockstep_with(
         }
         // Wall-clock time spent inside the core, for reports only (never recorded).
         let mut spent = Duration::ZERO;
-        let mut entered = std::time::Instant::now();
-        let mut timer = |on: bool| {
-            if on {
-                entered = std::time::Instant::now();
+        let t0 = Duration::from_secs_f64(k as f64 * period);
+        let t_win = Duration::from_secs_f64(k as f64 * period + window);
+        peer.advance_to(t0);
+        let off = peer.controller_bus_off(t0);
+        for bus in buses.iter_mut() {
+            bus.set_controller_bus_off(off);
+        }
+        let truth = peer.truth();
+        flush(peer, buses, &mut pending, t0);
+        for bus in buses.iter_mut() {
+            bus.set_time(t0);
+        }
+        let entered = std::time::Instant::now();
+        core.start_cycle_buses(t0.as_secs_f64(), &mut outs[..nb]);
+        spent += entered.elapsed();
+        receive(core, buses, &mut rx);
+        let entered = std::time::Instant::now();
+        for (b, t, f) in &rx {
+            if nb == 1 {
+                core.on_frame(f, *t);
             } else {
-                spent += entered.elapsed();
+                core.on_frame_on(*b, f, *t);
             }
-        };
-        let mut hooks = StepHooks {
-            around_core: Some(&mut timer),
-            ..Default::default()
-        };
-        lockstep_cycle(&mut st, core, bus, peer, &mut hooks);
+        }
+        core.after_late_frames_buses(t0.as_secs_f64(), &mut outs[..nb]);
+        spent += entered.elapsed();
+        send(core, buses, &outs);
+        deliver(peer, buses);
+        peer.advance_to(t_win);
+        flush(peer, buses, &mut pending, t_win);
+        for bus in buses.iter_mut() {
+            bus.set_time(t_win);
+        }
+        receive(core, buses, &mut rx);
+        let entered = std::time::Instant::now();
+        for (b, t, f) in &rx {
+            if nb == 1 {
+                core.on_frame(f, *t);
+            } else {
+                core.on_frame_on(*b, f, *t);
+            }
+        }
+        core.finish_cycle_buses(t_win.as_secs_f64(), &mut outs[..nb]);
+        spent += entered.elapsed();
+        send(core, buses, &outs);
+        deliver(peer, buses);
+        let rec = core.record_mut();
+        rec.truth = truth;
+        rec.timing.period_us = period * 1e6;
+        rec.timing.wakeup_latency_us = 0.0;
+        rec.timing.compute_us = 0.0;
         report.compute.record_us(spent.as_secs_f64() * 1e6);
         report.compute_total_s += spent.as_secs_f64();
         sink(core.record(), core.wheel_xy());
