@@ -1599,7 +1599,7 @@ fn example_platforms_print_check_and_their_new_fields_are_explained() {
 /// bus 0, 4–6 on bus 1) on two in-process buses, each wheel's frames on its own bus (the
 /// candump log names them vcan0 and vcan1) with one SYNC per bus per cycle; `run` and
 /// `drive` refuse a number of `--bus` options that differs from the platform's buses, and
-/// the same bus twice; `demo --lockstep` (one bus) refuses the platform, naming the option.
+/// the same bus twice.
 #[test]
 fn a_two_bus_platform_runs_on_two_buses_and_one_bus_is_refused() {
     let _serial = serial();
@@ -1640,30 +1640,7 @@ fn a_two_bus_platform_runs_on_two_buses_and_one_bus_is_refused() {
     assert!(misses * 10 < cycles, "{misses} deadline misses in {cycles}");
     assert_eq!(v["can_bus"].as_array().map(|a| a.len()), Some(2), "{v}");
     let log = std::fs::read_to_string(dir.join("two.log")).unwrap();
-    let mut syncs = [0u64; 2];
-    let mut wrong = Vec::new();
-    for l in log.lines() {
-        let mut f = l.split_whitespace();
-        let (_, iface, frame) = (f.next(), f.next().unwrap(), f.next().unwrap());
-        let id = u16::from_str_radix(frame.split('#').next().unwrap(), 16).unwrap();
-        let bus = match iface {
-            "vcan0" => 0,
-            "vcan1" => 1,
-            other => panic!("frame on {other}: {l}"),
-        };
-        let node = id & 0x7F;
-        if id == 0x080 {
-            syncs[bus] += 1;
-        } else if !(1..=6).contains(&node) || usize::from((node - 1) / 3) != bus {
-            wrong.push(l.to_string());
-        }
-    }
-    assert_eq!(syncs, [cycles, cycles], "one SYNC per bus per cycle");
-    assert!(
-        wrong.is_empty(),
-        "frames on the wrong bus: {:?}",
-        &wrong[..wrong.len().min(5)]
-    );
+    check_two_bus_log(&log, cycles);
     // One `--bus` for two platform buses: refused before any bus is opened, naming both counts.
     for cmd in [
         vec!["run", "--trajectory", "scenario:seed000"],
@@ -1708,12 +1685,78 @@ fn a_two_bus_platform_runs_on_two_buses_and_one_bus_is_refused() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{err}");
     assert!(err.contains("on 1 CAN bus(es) but 2 `--bus`"), "{err}");
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+/// The six-wheel example's candump log (wheels 1–3 on bus 0 as vcan0, 4–6 on bus 1 as
+/// vcan1): one SYNC per bus per cycle, every wheel's frames on its bus.
+fn check_two_bus_log(log: &str, cycles: u64) {
+    let mut syncs = [0u64; 2];
+    let mut wrong = Vec::new();
+    for l in log.lines() {
+        let mut f = l.split_whitespace();
+        let (_, iface, frame) = (f.next(), f.next().unwrap(), f.next().unwrap());
+        let id = u16::from_str_radix(frame.split('#').next().unwrap(), 16).unwrap();
+        let bus = match iface {
+            "vcan0" => 0,
+            "vcan1" => 1,
+            other => panic!("frame on {other}: {l}"),
+        };
+        let node = id & 0x7F;
+        if id == 0x080 {
+            syncs[bus] += 1;
+        } else if !(1..=6).contains(&node) || usize::from((node - 1) / 3) != bus {
+            wrong.push(l.to_string());
+        }
+    }
+    assert_eq!(syncs, [cycles, cycles], "one SYNC per bus per cycle");
+    assert!(
+        wrong.is_empty(),
+        "frames on the wrong bus: {:?}",
+        &wrong[..wrong.len().min(5)]
+    );
+}
+
+/// Two CAN buses on virtual time (issue 25): `demo --lockstep` runs the six-wheel example
+/// (seed 000) on two virtual buses and ends stopped on the goal (4.5 m, 4.5 m) within 5 mm,
+/// 0.5° and 2 mm of leg; its candump log has one SYNC per bus per cycle and each wheel's
+/// frames on its bus.
+#[test]
+fn lockstep_demo_runs_a_two_bus_platform() {
+    let _serial = serial();
+    let root = env!("CARGO_MANIFEST_DIR");
+    let six = format!("{root}/docs/examples/six-wheel.toml");
+    let dir = std::env::temp_dir().join(format!("rollbase-cli-lock2-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
     let out = rollbase()
-        .args(["demo", "--lockstep", "--config", &six])
+        .current_dir(&dir)
+        .args(["demo", "--lockstep", "--json", "--config", &six])
+        .args(["--candump", "two.log"])
         .output()
         .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{err}");
-    assert!(err.contains("`--lockstep` runs one bus"), "{err}");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{stderr}");
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    let cycles = v["cycles"].as_u64().unwrap();
+    let pos = v["max_position_error_m"].as_f64().unwrap();
+    let fin = v["final_position_error_m"].as_f64().unwrap();
+    let head = v["max_heading_error_rad"].as_f64().unwrap();
+    let leg = v["max_leg_error_m"].as_f64().unwrap();
+    println!(
+        "two-bus lockstep demo: {cycles} cycles, max position error {pos} m, final {fin} m, max heading error {head} rad, max leg error {leg} m"
+    );
+    assert!(v["fault_reason"].is_null(), "{v}");
+    assert_eq!(v["supervisor_final_state"], "stopped", "{v}");
+    assert_eq!(v["can_bus"].as_array().map(|a| a.len()), Some(2), "{v}");
+    assert!(pos < 0.005 && fin < 0.005, "{v}");
+    assert!(head < 0.5f64.to_radians(), "{v}");
+    assert!(leg < 0.002, "{v}");
+    let (x, y) = (
+        v["final_pose"]["x"].as_f64().expect("final_pose.x"),
+        v["final_pose"]["y"].as_f64().expect("final_pose.y"),
+    );
+    assert!((x - 4.5).abs() < 0.005 && (y - 4.5).abs() < 0.005, "{v}");
+    let log = std::fs::read_to_string(dir.join("two.log")).unwrap();
+    check_two_bus_log(&log, cycles);
     let _ = std::fs::remove_dir_all(dir);
 }

@@ -192,22 +192,6 @@ pub(crate) fn load_platform_as(
     Ok(p)
 }
 
-/// [`load_platform_as`] for `demo --lockstep`: virtual time runs one bus, the real-time demo
-/// two.
-pub(crate) fn load_platform_lockstep(
-    path: Option<&Path>,
-    profile: Option<Protocol>,
-) -> Result<Platform, CliError> {
-    let p = load_platform_profile(path, profile)?;
-    if p.buses() > 1 {
-        return Err(CliError::Usage(format!(
-            "platform `{}` puts wheels on bus 1: `--lockstep` runs one bus; drop `--lockstep` to run it in real time on two in-process buses",
-            p.name
-        )));
-    }
-    Ok(p)
-}
-
 /// [`load_platform_as`] for a command that runs the platform on the buses `buses` (the
 /// `--bus` options, in order: the b-th serves the wheels with `bus = b`): refused unless
 /// there is one per platform bus, each a different bus.

@@ -33,8 +33,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use super::common::{
-    install_signals, load_platform_lockstep, load_platform_on, load_platform_profile,
-    runtime_config, unix_now, CliError, CommonRun, SignalAction,
+    install_signals, load_platform_on, load_platform_profile, runtime_config, unix_now, CliError,
+    CommonRun, SignalAction,
 };
 use super::common::{Ready, Ros2Run, StateConsumer};
 use super::rt::{
@@ -704,12 +704,9 @@ pub(crate) fn drive(a: DriveArgs) -> Result<i32, CliError> {
 /// `rollbase demo --commands FILE|-` and `rollbase demo --teleop`: the base service with the
 /// simulated platform in-process, starting at rest (legs nominal).
 pub(crate) fn demo_live(a: DemoArgs) -> Result<i32, CliError> {
-    // Real time serves a platform on two buses (two in-process buses); virtual time one.
-    let platform = if a.lockstep {
-        load_platform_lockstep(a.common.config.as_deref(), a.common.profile)?
-    } else {
-        load_platform_profile(a.common.config.as_deref(), a.common.profile)?
-    };
+    // A platform on two buses runs on two in-process buses (real time) or two virtual buses
+    // (--lockstep).
+    let platform = load_platform_profile(a.common.config.as_deref(), a.common.profile)?;
     let cfg: RuntimeConfig = runtime_config(&a.common, None)?;
     let source = if a.teleop {
         Source::Keyboard

@@ -3,7 +3,7 @@
 use clap::Args;
 use rollbase_control::runtime::record::CycleRecord;
 use rollbase_control::runtime::scenario::{self, Scenario};
-use rollbase_control::runtime::{run_lockstep_with, CycleCore, VirtualLockstepBus};
+use rollbase_control::runtime::{run_lockstep_buses, CycleCore, LockstepBus, VirtualLockstepBus};
 use rollbase_driver::bus::{self as bus, CanBus};
 use rollbase_vcan_sim::{FaultSchedule, PlantConfig, Simulator};
 use std::collections::BTreeMap;
@@ -14,8 +14,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::common::{
-    install_signals, load_platform_lockstep, load_platform_on, load_platform_profile,
-    runtime_config, unix_now, CliError, CommonRun, SignalAction,
+    install_signals, load_platform_on, load_platform_profile, runtime_config, unix_now, CliError,
+    CommonRun, SignalAction,
 };
 use super::rt::{as_buses, print_report, run_cycle, wall_buses, Ports, SimThread};
 use super::sinks::{exit_code, print_summary, Ending, OutputPlan, Sinks};
@@ -84,14 +84,10 @@ impl DemoArgs {
 
 /// A demo that follows a trajectory (the live ones are `service::demo_live`).
 pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
-    // Everything is validated before anything is created or started. In real time the
-    // in-process simulator serves a platform on two buses on two in-process buses; on
-    // virtual time (--lockstep) one bus only.
-    let platform = if a.lockstep {
-        load_platform_lockstep(a.common.config.as_deref(), a.common.profile)?
-    } else {
-        load_platform_profile(a.common.config.as_deref(), a.common.profile)?
-    };
+    // Everything is validated before anything is created or started. The in-process
+    // simulator serves a platform on two buses on two in-process buses (real time) or two
+    // virtual buses (--lockstep).
+    let platform = load_platform_profile(a.common.config.as_deref(), a.common.profile)?;
     a.ros2.options(platform.n())?; // refuses --ros2-* options without --ros2
     let (traj, sc, name) = match &a.trajectory {
         Some(file) => {
@@ -258,11 +254,18 @@ pub(crate) fn run_demo_lockstep(
     quiet: bool,
 ) {
     let dt = core.platform().dt();
-    let mut vbus = VirtualLockstepBus::new(Default::default(), seed);
+    // One virtual bus per platform bus (bus 0's seed as the one-bus demo's).
+    let mut vbuses: Vec<VirtualLockstepBus> = (0..core.buses().max(1) as u64)
+        .map(|b| VirtualLockstepBus::new(Default::default(), seed ^ (b << 32)))
+        .collect();
+    let mut buses: Vec<&mut dyn LockstepBus> = vbuses
+        .iter_mut()
+        .map(|b| b as &mut dyn LockstepBus)
+        .collect();
     let failed = std::cell::Cell::new(false);
-    let rep = run_lockstep_with(
+    let rep = run_lockstep_buses(
         core,
-        &mut vbus,
+        &mut buses,
         &mut sim,
         commands,
         max_cycles,
