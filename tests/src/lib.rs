@@ -538,136 +538,103 @@ pub fn steering_turn_while_slow(records: &[CycleRecord], wheel_radius: f64, whee
     worst
 }
 
+/// A lockstep medium that, from `at` (s) on when `lost`, carries nothing either way and
+/// reports no error (a cable cut behind the controller's transceiver): what is sent from
+/// then on (by time of the medium's clock) is dropped without a word.
+struct Losable {
+    bus: VirtualLockstepBus,
+    lost_at: Option<f64>,
+    now: f64,
+}
+
+impl Losable {
+    fn lost(&self) -> bool {
+        self.lost_at.is_some_and(|at| self.now >= at)
+    }
+}
+
+impl rollbase_control::runtime::LockstepBus for Losable {
+    fn set_time(&mut self, t: std::time::Duration) {
+        self.now = t.as_secs_f64();
+        self.bus.set_time(t);
+    }
+    fn controller_send(
+        &mut self,
+        f: &rollbase_driver::frame::CanFrame,
+    ) -> Result<(), rollbase_driver::bus::BusError> {
+        if self.lost() {
+            return Ok(());
+        }
+        self.bus.controller_send(f)
+    }
+    fn controller_recv(
+        &mut self,
+    ) -> Result<Option<rollbase_driver::frame::TimestampedFrame>, rollbase_driver::bus::BusError>
+    {
+        self.bus.controller_recv()
+    }
+    fn peer_send(
+        &mut self,
+        f: &rollbase_driver::frame::CanFrame,
+    ) -> Result<(), rollbase_driver::bus::BusError> {
+        if self.lost() {
+            return Ok(());
+        }
+        self.bus.peer_send(f)
+    }
+    fn peer_recv(
+        &mut self,
+    ) -> Result<Option<rollbase_driver::frame::TimestampedFrame>, rollbase_driver::bus::BusError>
+    {
+        self.bus.peer_recv()
+    }
+    fn set_controller_bus_off(&mut self, off: bool) {
+        self.bus.set_controller_bus_off(off);
+    }
+}
+
 /// Runs `opts` in lockstep with every CAN bus of the platform (`wheels[i].bus`) on its own
-/// virtual medium: each bus gets its own SYNC and setpoints from the core
-/// ([`CycleCore::start_cycle_buses`]), the simulator's devices see only their bus's frames
+/// virtual medium ([`rollbase_control::runtime::run_lockstep_buses`]): each bus gets its own
+/// SYNC and setpoints from the core, the simulator's devices see only their bus's frames
 /// ([`Simulator::on_frame_on`]) and answer on it. `lose` = (bus, t): from `t` (s) on, that
 /// bus's medium carries nothing either way and reports no error (a cable cut behind the
-/// controller's transceiver). The cycle is
-/// `rollbase_control::runtime::lockstep_cycle`'s, bus by bus (late frames taken before the
-/// SYNC, [`CycleCore::after_late_frames_buses`]).
+/// controller's transceiver).
 pub fn run_buses(opts: &RunOptions, lose: Option<(usize, f64)>) -> RunOutcome {
     use rollbase_control::runtime::LockstepBus;
-    use rollbase_driver::frame::{CanFrame, FrameBuf};
-    use std::time::Duration;
     let (mut core, mut sim, _, duration) = build(opts).expect("valid setup");
     let platform = core.platform().clone();
     let nb = core.buses();
-    let mut media: Vec<VirtualLockstepBus> = (0..nb as u64)
-        .map(|b| VirtualLockstepBus::new(opts.bus_faults, opts.seed ^ 0x5EED ^ (b << 32)))
+    let mut media: Vec<Losable> = (0..nb as u64)
+        .map(|b| Losable {
+            bus: VirtualLockstepBus::new(opts.bus_faults, opts.seed ^ 0x5EED ^ (b << 32)),
+            lost_at: lose.and_then(|(lb, at)| (lb as u64 == b).then_some(at)),
+            now: 0.0,
+        })
         .collect();
-    let period = platform.dt();
-    let window = core.config().feedback_window.clamp(0.0, period);
+    let mut buses: Vec<&mut dyn LockstepBus> = media
+        .iter_mut()
+        .map(|m| m as &mut dyn LockstepBus)
+        .collect();
     let seconds = opts.max_seconds.unwrap_or(duration + opts.slack_s);
     let max_cycles = (seconds * platform.cycle_hz) as u64;
-    let mut outs = [FrameBuf::new(), FrameBuf::new()];
-    let mut pending: Vec<(Duration, CanFrame)> = Vec::new();
-    let mut rx: Vec<(usize, f64, CanFrame)> = Vec::new();
     let mut records = Vec::new();
     let mut summary = RunSummary::new(opts.scenario.name());
-    let lost = |b: usize, t: f64| lose.is_some_and(|(lb, at)| lb == b && t >= at);
-    // The simulator's frames up to `until`, each on its device's bus.
-    let flush = |sim: &mut Simulator,
-                 media: &mut [VirtualLockstepBus],
-                 pending: &mut Vec<(Duration, CanFrame)>,
-                 until: Duration| {
-        sim.drain_tx(&mut |t, f| pending.push((t, f)));
-        pending.sort_by_key(|(t, _)| *t);
-        let mut sent = 0;
-        for (t, f) in pending.iter() {
-            if *t > until {
-                break;
-            }
-            let b = sim.bus_of_node((f.id() & 0x7F) as u8).min(media.len() - 1);
-            if !lost(b, t.as_secs_f64()) {
-                media[b].set_time(*t);
-                let _ = media[b].peer_send(f);
-            }
-            sent += 1;
-        }
-        pending.drain(..sent);
-    };
-    let deliver = |sim: &mut Simulator, media: &mut [VirtualLockstepBus]| {
-        for (b, m) in media.iter_mut().enumerate() {
-            while let Ok(Some(f)) = m.peer_recv() {
-                sim.on_frame_on(b, f.timestamp, &f.frame);
-            }
-        }
-    };
-    let send =
-        |core: &mut CycleCore, media: &mut [VirtualLockstepBus], outs: &[FrameBuf], t: f64| {
-            for (b, m) in media.iter_mut().enumerate() {
-                for f in outs[b].as_slice() {
-                    // A lost bus takes the controller's frames without a word (no send
-                    // error): only the silence of its devices tells.
-                    if !lost(b, t) && m.controller_send(f).is_err() {
-                        core.report_bus_error();
-                    }
-                }
-            }
-        };
-    core.arm();
-    for k in 0..max_cycles {
-        if Some(k) == opts.stop_at_cycle {
-            core.request_stop();
-        }
-        let t0 = Duration::from_secs_f64(k as f64 * period);
-        let t_win = Duration::from_secs_f64(k as f64 * period + window);
-        sim.advance_to(t0);
-        let truth = {
-            let t = sim.truth();
-            Some((t.pose, t.legs))
-        };
-        flush(&mut sim, &mut media, &mut pending, t0);
-        for m in media.iter_mut() {
-            m.set_time(t0);
-        }
-        core.start_cycle_buses(t0.as_secs_f64(), &mut outs[..nb]);
-        // What came in after the last window (late answers, the devices' answers to the
-        // requests sent at the end of the last cycle) is taken before the SYNC goes out, and
-        // what it made due goes out with the SYNC, as `lockstep_cycle` does on one bus.
-        rx.clear();
-        for (b, m) in media.iter_mut().enumerate() {
-            while let Ok(Some(f)) = m.controller_recv() {
-                rx.push((b, f.timestamp.as_secs_f64(), f.frame));
-            }
-        }
-        rx.sort_by(|a, b| a.1.total_cmp(&b.1));
-        for (b, t, f) in &rx {
-            core.on_frame_on(*b, f, *t);
-        }
-        core.after_late_frames_buses(t0.as_secs_f64(), &mut outs[..nb]);
-        send(&mut core, &mut media, &outs, t0.as_secs_f64());
-        deliver(&mut sim, &mut media);
-        sim.advance_to(t_win);
-        flush(&mut sim, &mut media, &mut pending, t_win);
-        rx.clear();
-        for (b, m) in media.iter_mut().enumerate() {
-            m.set_time(t_win);
-            while let Ok(Some(f)) = m.controller_recv() {
-                rx.push((b, f.timestamp.as_secs_f64(), f.frame));
-            }
-        }
-        rx.sort_by(|a, b| a.1.total_cmp(&b.1));
-        for (b, t, f) in &rx {
-            core.on_frame_on(*b, f, *t);
-        }
-        core.finish_cycle_buses(t_win.as_secs_f64(), &mut outs[..nb]);
-        send(&mut core, &mut media, &outs, t_win.as_secs_f64());
-        deliver(&mut sim, &mut media);
-        let rec = core.record_mut();
-        rec.truth = truth;
-        rec.timing.period_us = period * 1e6;
-        summary.update(core.record());
-        records.push(*core.record());
-        if core.done() {
-            break;
-        }
-    }
+    let report = rollbase_control::runtime::run_lockstep_buses(
+        &mut core,
+        &mut buses,
+        &mut sim,
+        &[],
+        max_cycles,
+        &mut |k| Some(k) == opts.stop_at_cycle,
+        &mut |r, _| {
+            summary.update(r);
+            records.push(*r);
+        },
+    );
     RunOutcome {
         records,
         summary,
-        report: LockstepReport::default(),
+        report,
         platform,
         final_drive_states: Vec::new(),
         after_end: Vec::new(),
