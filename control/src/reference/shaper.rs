@@ -172,7 +172,9 @@
 //! a rolling wheel beyond its steering shares (a leg's rate is part of its wheel's contact
 //! velocity: `leg_accel_cap`; a braked move lasts long enough for the same). New
 //! targets during a move are taken when it ends (a leg never overshoots its target, so
-//! never its range); a halt brakes the move within the same acceleration. A command of rest
+//! never its range); a halt brakes the move within the same acceleration, unless the brake
+//! (which runs on at its starting speed for half its duration) would carry the legs past
+//! their targets — near the end of the move — where the move is left to end by itself. A command of rest
 //! during a leg move stops the twist and brakes the legs over the same time, so every
 //! contact velocity shrinks roughly in proportion and keeps its direction; any other large
 //! change of the twist waits for the legs' brake.
@@ -1125,8 +1127,16 @@ impl Shaper {
     }
 
     fn brake_legs_within(&mut self, together: Option<f64>) {
-        if let LegMove::Move { from, ratio, .. } = self.legs_move {
+        if let LegMove::Move {
+            from, ratio, prof, ..
+        } = self.legs_move
+        {
             let (p, v, a) = self.leg_state;
+            // A brake runs on for half its duration at the speed it starts with: near the end
+            // of a move that passes the target (and the leg's range, when the target is its
+            // end). Then the move is left to end by itself: its own deceleration stops the
+            // legs on their targets, within the leg acceleration, no later than a brake.
+            let p_end = prof.sample(prof.duration()).pos;
             // Long enough for every rolling wheel's steering too (`leg_steer_gain`): the
             // quintic's acceleration turns the wheels at L·λ̈ and its jerk at L·λ⃛.
             let tw = [self.qd[0], self.qd[1], self.qd[2]];
@@ -1142,6 +1152,9 @@ impl Shaper {
             let mut tries = if together.is_some() { 24 } else { 0 };
             loop {
                 let end = p + 0.5 * v * duration;
+                if (p_end - end) * v.signum() <= 0.0 {
+                    return;
+                }
                 coef = crate::reference::trajectory::quintic(p, v, a, end, 0.0, 0.0, duration);
                 let (mut amax, mut jmax) = (0.0f64, 0.0f64);
                 for k in 0..=32 {
@@ -2527,6 +2540,47 @@ mod tests {
                 s.legs()[i]
             );
         }
+    }
+
+    /// A leg move braked in its deceleration (a new twist far from the running one while the
+    /// legs still move) stops on its target, not past it: a brake runs on for half its
+    /// duration at the speed it starts with, which near the end of a move passed the target
+    /// and the end of the range, where the position was clamped while the rate went on (the
+    /// plant's leg stopped, the reference's did not: a wheel-slip fault).
+    #[test]
+    fn a_leg_move_braked_near_its_end_stops_on_its_target() {
+        let (p, mut s) = shaper();
+        s.command(tw(0.3, 0.0, 0.0), Some(&[0.56; 4]));
+        let mut samples = run(&p, &mut s, 1);
+        // Into the deceleration of the move: the leg speed falls and is still sizeable.
+        let mut peak = 0.0f64;
+        loop {
+            let r = s.step();
+            check(&p, &r, samples.last());
+            samples.push(r);
+            peak = peak.max(r.dz[3]);
+            assert!(samples.len() < 5000, "the leg move never decelerated");
+            if r.dz[3] > 0.0 && r.dz[3] < 0.9 * peak && r.dz[3] > 0.5 * peak {
+                break;
+            }
+        }
+        // A large change of the twist: it waits for the legs, which brake.
+        s.command(tw(-0.3, 0.3, 0.5), None);
+        samples.extend(run(&p, &mut s, 2000));
+        let h = p.dt();
+        for w in samples.windows(2) {
+            let (a, b) = (&w[0], &w[1]);
+            assert!(b.z[3] <= 0.56 + 1e-12, "leg beyond its target: {}", b.z[3]);
+            // The position follows the rate (trapezoidal rule within the jerk's cubic term).
+            let moved = b.z[3] - a.z[3];
+            let by_rate = 0.5 * h * (a.dz[3] + b.dz[3]);
+            assert!(
+                (moved - by_rate).abs() <= 1e-5,
+                "at {:.3} s the leg moved {moved:.6} m, its rate says {by_rate:.6} m",
+                b.t
+            );
+        }
+        assert!((s.legs()[0] - 0.56).abs() <= 1e-4 + 1e-12);
     }
 
     #[test]
