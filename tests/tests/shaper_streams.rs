@@ -1,0 +1,104 @@
+//! The live shaper alone (no bus, no plant) on many joystick sessions: the flow tests
+//! (`e2e_flow.rs`) run one stick per noise level through the full frame path; this runs
+//! eight sticks per noise level through `Shaper` itself, which takes milliseconds, so that a
+//! change of the shaper is judged on more than one session.
+//!
+//! Two measures, each asserted:
+//! - **no creeping**: while the stick asks for at least 0.2 m/s, the reference is never
+//!   slower than 3 cm/s for more than [`LONGEST_CREEP_S`] at a stretch. A start from rest
+//!   with the wheels turning by up to 90° takes about 0.9 s; a twist left rolling a turning
+//!   wheel inside the noise band held that wheel off its aim and crept at 1–2 cm/s for
+//!   12 s (seed 2, σ = 0.02 m/s) before the capped goal was followed as a limit;
+//! - **path**: the reference's mean path over the sessions, as a share of the ideal
+//!   execution's ([`ideal_path_length`]), at least what the shaper achieves now
+//!   ([`MEAN_PATH_ACHIEVED`]), so that it cannot get worse unnoticed. Issue 23 asks 90 % of
+//!   the closed loop on one session; the shaper alone is its upper bound.
+
+use rollbase_control::reference::shaper::{Shaper, ShaperConfig};
+use rollbase_control::service::ports::{CommandKind, Limiting};
+use rollbase_control::Platform;
+use rollbase_tests::flow::{ideal_path_length, joystick_session, RELEASE_S};
+
+/// The sessions' sticks.
+const SEEDS: [u64; 8] = [23, 1, 2, 3, 4, 5, 6, 7];
+/// Length of each session (s).
+const SESSION_S: f64 = 20.0;
+/// Longest stretch (s) the reference may creep while the stick asks to move.
+const LONGEST_CREEP_S: f64 = 2.0;
+/// Stick speed (m/s) from which a creep counts.
+const ASKED: f64 = 0.2;
+/// Reference speed (m/s) below which it creeps.
+const CREEP: f64 = 0.03;
+/// Mean path share per noise level (σ = 0, 0.02, 0.05 m/s) measured when this was written:
+/// 63.4 %, 60.3 %, 56.0 % (before the shaper chose sweeping or stopping by what each leaves
+/// behind and let transitions finish: 56.2 %, 53.6 %, 44.9 %).
+const MEAN_PATH_ACHIEVED: [(f64, f64); 3] = [(0.0, 0.63), (0.02, 0.60), (0.05, 0.55)];
+
+/// (path share, longest creep in s) of one session through the shaper alone.
+fn session(p: &Platform, seed: u64, sigma: f64) -> (f64, f64) {
+    let cmds = joystick_session(seed, SESSION_S, sigma);
+    let ideal = ideal_path_length(&cmds, p.service.command_timeout);
+    let mut s = Shaper::new(p, ShaperConfig::default());
+    let dt = p.dt();
+    let (mut k, mut t, mut path) = (0usize, 0.0f64, 0.0f64);
+    let mut asked = 0.0f64;
+    let (mut creep, mut longest) = (0.0f64, 0.0f64);
+    while t < SESSION_S + RELEASE_S + 0.5 {
+        while k < cmds.len() && cmds[k].t <= t + 1e-9 {
+            match cmds[k].kind {
+                CommandKind::Motion(m) => {
+                    s.command(m.twist, None);
+                    asked = m.twist.vx.hypot(m.twist.vy);
+                }
+                _ => s.halt_for(Limiting::Stop),
+            }
+            k += 1;
+        }
+        s.step();
+        let q = s.velocity();
+        let v = q[0].hypot(q[1]);
+        path += v * dt;
+        if asked >= ASKED && v < CREEP {
+            creep += dt;
+            longest = longest.max(creep);
+        } else {
+            creep = 0.0;
+        }
+        t += dt;
+    }
+    (path / ideal, longest)
+}
+
+#[test]
+fn the_shaper_never_creeps_while_a_joystick_asks_to_move_and_keeps_its_path() {
+    let p = Platform::justin();
+    let mut failures = Vec::new();
+    for (sigma, floor) in MEAN_PATH_ACHIEVED {
+        let mut mean = 0.0;
+        for seed in SEEDS {
+            let (share, longest) = session(&p, seed, sigma);
+            println!(
+                "SHAPER joystick seed {seed} σ = {sigma}: path {:.1} % of the ideal, longest creep \
+                 {longest:.2} s",
+                100.0 * share
+            );
+            mean += share / SEEDS.len() as f64;
+            if longest > LONGEST_CREEP_S {
+                failures.push(format!(
+                    "seed {seed}, σ = {sigma}: the reference crept below {CREEP} m/s for \
+                     {longest:.2} s while the stick asked for {ASKED} m/s or more (≤ \
+                     {LONGEST_CREEP_S} s)"
+                ));
+            }
+        }
+        println!("SHAPER σ = {sigma}: mean path {:.1} %", 100.0 * mean);
+        if mean < floor {
+            failures.push(format!(
+                "σ = {sigma}: mean path {:.1} % of the ideal (≥ {:.0} %)",
+                100.0 * mean,
+                100.0 * floor
+            ));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
