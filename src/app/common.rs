@@ -30,6 +30,9 @@ pub enum CliError {
     /// Runtime could not start.
     #[error(transparent)]
     Runtime(#[from] rollbase_control::runtime::RuntimeError),
+    /// The lockstep run could not start.
+    #[error(transparent)]
+    Lockstep(#[from] rollbase_control::runtime::LockstepError),
     /// Bus could not be opened or failed.
     #[error(transparent)]
     Bus(#[from] rollbase_driver::bus::BusError),

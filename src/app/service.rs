@@ -804,7 +804,7 @@ pub(crate) fn demo_live(a: DemoArgs) -> Result<i32, CliError> {
                 max_cycles,
                 a.seed,
                 a.common.json,
-            );
+            )?;
         }
         (true, _) => return Err(CliError::Usage(
             "--lockstep needs --commands FILE (virtual time cannot wait for stdin or a keyboard)"

@@ -173,7 +173,7 @@ pub(crate) fn demo(a: DemoArgs) -> Result<i32, CliError> {
             max_cycles,
             a.seed,
             quiet,
-        );
+        )?;
     } else {
         run_demo_realtime(&mut core, sim, &mut sinks, &stop, duration, quiet)?;
     }
@@ -252,7 +252,7 @@ pub(crate) fn run_demo_lockstep(
     max_cycles: u64,
     seed: u64,
     quiet: bool,
-) {
+) -> Result<(), CliError> {
     let dt = core.platform().dt();
     // One virtual bus per platform bus (bus 0's seed as the one-bus demo's).
     let mut vbuses: Vec<VirtualLockstepBus> = (0..core.buses().max(1) as u64)
@@ -277,7 +277,7 @@ pub(crate) fn run_demo_lockstep(
                 failed.set(true);
             }
         },
-    );
+    )?;
     if let Some(e) = sinks.error() {
         tracing::error!("{e}: {}", super::rt::error_chain(e));
     }
@@ -291,6 +291,7 @@ pub(crate) fn run_demo_lockstep(
             rep.cycles as f64 * dt / rep.wall_s.max(1e-9)
         );
     }
+    Ok(())
 }
 
 pub(crate) fn run_demo_realtime(

@@ -204,7 +204,8 @@ pub fn run_with(opts: &RunOptions, sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]
             records.push(*r);
             sink(r, w);
         },
-    );
+    )
+    .expect("the test platform's buses, one lockstep bus each");
     let truth_steer = sim.truth().steer;
     let end = sim.now();
     sim.advance_to(end + AFTER_END);
@@ -424,7 +425,8 @@ pub fn run_live(
             summary.update(r);
             records.push(*r);
         },
-    );
+    )
+    .expect("the test platform's buses, one lockstep bus each");
     RunOutcome {
         records,
         summary,
@@ -630,7 +632,8 @@ pub fn run_buses(opts: &RunOptions, lose: Option<(usize, f64)>) -> RunOutcome {
             summary.update(r);
             records.push(*r);
         },
-    );
+    )
+    .expect("the test platform's buses, one lockstep bus each");
     RunOutcome {
         records,
         summary,

@@ -156,3 +156,52 @@ fn two_cia402_buses_boot_as_fast_as_one() {
         "two buses took {c2} cycles to configure, one bus {c1}"
     );
 }
+
+/// A number of lockstep buses other than the platform's is refused before anything runs,
+/// with the typed error naming both counts (it used to be an assertion, a panic).
+#[test]
+fn a_lockstep_run_with_the_wrong_number_of_buses_is_refused_with_a_typed_error() {
+    use rollbase_control::runtime::{
+        run_lockstep_buses, LockstepBus, LockstepError, VirtualLockstepBus,
+    };
+    for (platform, given) in [(Platform::six_wheel(), 1usize), (Platform::justin(), 2)] {
+        let o = RunOptions {
+            platform: Some(platform),
+            ..opts(Protocol::Native)
+        };
+        let (mut core, mut sim, _, _) = rollbase_tests::build(&o).expect("valid setup");
+        let mut media: Vec<VirtualLockstepBus> = (0..given)
+            .map(|b| VirtualLockstepBus::new(Default::default(), b as u64))
+            .collect();
+        let mut buses: Vec<&mut dyn LockstepBus> = media
+            .iter_mut()
+            .map(|m| m as &mut dyn LockstepBus)
+            .collect();
+        let mut cycles = 0;
+        let err = run_lockstep_buses(
+            &mut core,
+            &mut buses,
+            &mut sim,
+            &[],
+            100,
+            &mut |_| false,
+            &mut |_, _| cycles += 1,
+        )
+        .expect_err("a wrong bus count must be refused");
+        let want = core.buses();
+        assert_eq!(
+            err,
+            LockstepError::BusCount {
+                platform: want,
+                given
+            }
+        );
+        assert_eq!(cycles, 0, "nothing may run before the refusal");
+        let text = err.to_string();
+        assert!(
+            text.contains(&format!("{want} CAN bus(es)"))
+                && text.contains(&format!("{given} lockstep")),
+            "{text}"
+        );
+    }
+}

@@ -58,7 +58,8 @@ fn run(waypoints: &[WaypointSpec], seed: u64) -> Outcome {
             summary.update(r);
             records.push(*r);
         },
-    );
+    )
+    .expect("one-bus platform, one lockstep bus");
     Outcome {
         records,
         summary,

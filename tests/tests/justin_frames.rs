@@ -80,7 +80,8 @@ fn frames_hash(opts: &RunOptions) -> (u64, u64, String) {
         max_cycles,
         None,
         &mut |_, _| {},
-    );
+    )
+    .expect("one-bus platform, one lockstep bus");
     (bus.hash, bus.frames, format!("{:?}", core.state()))
 }
 

@@ -154,7 +154,8 @@ fn a_trajectory_at_the_largest_accepted_coordinates_is_tracked_within_the_bounds
             }
             prev = Some(r.command);
         },
-    );
+    )
+    .expect("one-bus platform, one lockstep bus");
     println!(
         "x0 = {x0} m, θ0 = {t0} rad: pos {:.3} mm, heading {:.4}°, legs {:.3} mm, {}",
         summary.max_position_error_m * 1e3,

@@ -126,6 +126,25 @@ pub struct LockstepReport {
     pub wall_s: f64,
 }
 
+/// Why a lockstep run refused to start.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum LockstepError {
+    /// The number of lockstep buses given differs from the number the platform's wheels are
+    /// on (the one-bus runners give one).
+    #[error(
+        "the platform's wheels are on {platform} CAN bus(es) but {given} lockstep bus(es) were \
+         given: give one bus per platform bus (run_lockstep_buses; bus b carries the wheels \
+         with bus = b)"
+    )]
+    BusCount {
+        /// Buses the platform's wheels are on ([`Platform::buses`](crate::Platform::buses),
+        /// at least one).
+        platform: usize,
+        /// Buses given.
+        given: usize,
+    },
+}
+
 /// What one lockstep cycle may do differently (fault campaigns, measurements). The default
 /// is a normal cycle.
 #[derive(Default)]
@@ -383,7 +402,7 @@ pub fn run_lockstep(
     max_cycles: u64,
     stop_at_cycle: Option<u64>,
     sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
-) -> LockstepReport {
+) -> Result<LockstepReport, LockstepError> {
     run_lockstep_with(
         core,
         bus,
@@ -408,7 +427,7 @@ pub fn run_lockstep_live(
     commands: &[CommandEvent],
     max_cycles: u64,
     sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
-) -> LockstepReport {
+) -> Result<LockstepReport, LockstepError> {
     run_lockstep_with(core, bus, peer, commands, max_cycles, &mut |_| false, sink)
 }
 
@@ -423,7 +442,7 @@ pub fn run_lockstep_with(
     max_cycles: u64,
     stop: &mut dyn FnMut(u64) -> bool,
     sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
-) -> LockstepReport {
+) -> Result<LockstepReport, LockstepError> {
     run_lockstep_buses(core, &mut [bus], peer, commands, max_cycles, stop, sink)
 }
 
@@ -432,7 +451,9 @@ pub fn run_lockstep_with(
 /// the peer's frames on the bus [`LockstepPeer::bus_of`] names, delivered to the peer with
 /// [`LockstepPeer::on_frame_on`]). The cycle is [`lockstep_cycle`]'s without hooks, bus by
 /// bus: late frames taken before the SYNC, the feedback window, the setpoints. With one bus it
-/// gives [`run_lockstep_with`]'s records.
+/// gives [`run_lockstep_with`]'s records. A number of buses other than the platform's is
+/// refused before anything runs ([`LockstepError::BusCount`]); so is a two-bus platform given
+/// to the one-bus runners.
 #[allow(clippy::too_many_arguments)]
 pub fn run_lockstep_buses(
     core: &mut CycleCore,
@@ -442,12 +463,15 @@ pub fn run_lockstep_buses(
     max_cycles: u64,
     stop: &mut dyn FnMut(u64) -> bool,
     sink: &mut dyn FnMut(&CycleRecord, &[[f64; 2]]),
-) -> LockstepReport {
-    let nb = buses.len().clamp(1, 2);
-    assert!(
-        buses.len() == nb && nb >= core.buses(),
-        "one lockstep bus per platform bus"
-    );
+) -> Result<LockstepReport, LockstepError> {
+    let platform = core.buses().max(1);
+    if buses.len() != platform {
+        return Err(LockstepError::BusCount {
+            platform,
+            given: buses.len(),
+        });
+    }
+    let nb = platform;
     let mut report = LockstepReport::default();
     let wall = std::time::Instant::now();
     let period = core.platform().dt();
@@ -608,5 +632,5 @@ pub fn run_lockstep_buses(
         }
     }
     report.wall_s = wall.elapsed().as_secs_f64();
-    report
+    Ok(report)
 }
