@@ -1,6 +1,7 @@
 //! The lockstep driver: the cycle core and a simulated peer on virtual time.
 
 use super::CycleCore;
+use crate::model::platform::MAX_BUSES;
 use crate::runtime::record::CycleRecord;
 use crate::service::ports::CommandEvent;
 use crate::supervisor::SupervisorState;
@@ -175,8 +176,10 @@ pub struct LockstepState {
     period: f64,
     window: f64,
     pending: Vec<(Duration, CanFrame)>,
-    out: FrameBuf,
-    rx_buf: Vec<(f64, CanFrame)>,
+    /// The controller's frames per bus.
+    outs: [FrameBuf; MAX_BUSES],
+    /// What the controller received, as (bus, time, frame).
+    rx_buf: Vec<(usize, f64, CanFrame)>,
     /// Frames the controller lost because its interface was down.
     pub lost_iface_down: u64,
 }
@@ -190,7 +193,7 @@ impl LockstepState {
             period,
             window: core.config().feedback_window.clamp(0.0, period),
             pending: Vec::with_capacity(64),
-            out: FrameBuf::new(),
+            outs: [FrameBuf::new(), FrameBuf::new()],
             rx_buf: Vec::with_capacity(64),
             lost_iface_down: 0,
         }
@@ -211,96 +214,128 @@ impl LockstepState {
         self.window
     }
 
+    /// The peer's frames sent up to `until` onto their buses ([`LockstepPeer::bus_of`]), in
+    /// time order (a stable sort keeps the peer's order among equal send times).
     fn flush_peer(
         &mut self,
-        bus: &mut dyn LockstepBus,
+        buses: &mut [&mut dyn LockstepBus],
         peer: &mut dyn LockstepPeer,
         until: Duration,
     ) {
         let pending = &mut self.pending;
         peer.drain_tx(&mut |t, f| pending.push((t, f)));
-        // Stable sort keeps the peer's order among frames with equal send times.
         pending.sort_by_key(|(t, _)| *t);
         let mut sent = 0;
         for (t, f) in pending.iter() {
             if *t > until {
                 break;
             }
-            bus.set_time(*t);
+            let b = peer.bus_of(f).min(buses.len() - 1);
+            buses[b].set_time(*t);
             // A failed send from the simulated peer is the same as a lost frame.
-            let _ = bus.peer_send(f);
+            let _ = buses[b].peer_send(f);
             sent += 1;
         }
         pending.drain(..sent);
     }
 }
 
-fn deliver_to_peer(bus: &mut dyn LockstepBus, peer: &mut dyn LockstepPeer) {
-    while let Ok(Some(f)) = bus.peer_recv() {
-        peer.on_frame(f.timestamp, &f.frame);
+/// What the controller sent reaches the peer (on one bus as [`LockstepPeer::on_frame`], on
+/// several with the bus named).
+fn deliver_to_peer(buses: &mut [&mut dyn LockstepBus], peer: &mut dyn LockstepPeer) {
+    let one = buses.len() == 1;
+    for (b, bus) in buses.iter_mut().enumerate() {
+        while let Ok(Some(f)) = bus.peer_recv() {
+            if one {
+                peer.on_frame(f.timestamp, &f.frame);
+            } else {
+                peer.on_frame_on(b, f.timestamp, &f.frame);
+            }
+        }
     }
 }
 
-/// Everything the controller's node holds now into `st.rx_buf` (cleared first), through
-/// the hooks (lost while the interface is down, transformed by `on_rx`).
+/// Everything the controller's nodes hold now into `st.rx_buf` (cleared first; several
+/// buses' frames in time order), through the hooks (lost while the interface is down,
+/// transformed by `on_rx`).
 fn receive(
     st: &mut LockstepState,
     core: &mut CycleCore,
-    bus: &mut dyn LockstepBus,
+    buses: &mut [&mut dyn LockstepBus],
     hooks: &mut StepHooks<'_>,
 ) {
     st.rx_buf.clear();
-    loop {
-        match bus.controller_recv() {
-            Ok(Some(_)) if hooks.iface_down => st.lost_iface_down += 1,
-            Ok(Some(f)) => {
-                let t = f.timestamp.as_secs_f64();
-                let buf = &mut st.rx_buf;
-                match hooks.on_rx.as_mut() {
-                    Some(h) => h(&f.frame, &mut |g| buf.push((t, g))),
-                    None => buf.push((t, f.frame)),
+    for (b, bus) in buses.iter_mut().enumerate() {
+        loop {
+            match bus.controller_recv() {
+                Ok(Some(_)) if hooks.iface_down => st.lost_iface_down += 1,
+                Ok(Some(f)) => {
+                    let t = f.timestamp.as_secs_f64();
+                    let buf = &mut st.rx_buf;
+                    match hooks.on_rx.as_mut() {
+                        Some(h) => h(&f.frame, &mut |g| buf.push((b, t, g))),
+                        None => buf.push((b, t, f.frame)),
+                    }
+                }
+                Ok(None) => break,
+                // A controller state change (error frame): counted, and on bus-off a fault;
+                // the frames behind it are still read.
+                Err(e) if e.bus_event().is_some() => {
+                    if let Some(ev) = e.bus_event() {
+                        core.report_bus_event(b, ev);
+                    }
+                }
+                Err(_) => {
+                    core.report_bus_error();
+                    break;
                 }
             }
-            Ok(None) => break,
-            // A controller state change (error frame): counted, and on bus-off a fault; the
-            // frames behind it are still read.
-            Err(e) if e.bus_event().is_some() => {
-                if let Some(ev) = e.bus_event() {
-                    core.report_bus_event(0, ev);
-                }
-            }
-            Err(_) => {
+        }
+    }
+    // Several buses' frames in time order (one bus keeps the order it delivered them in).
+    if buses.len() > 1 {
+        st.rx_buf.sort_by(|a, b| a.1.total_cmp(&b.1));
+    }
+}
+
+/// The received frames into the core (with their bus when there are several).
+fn take_frames(st: &LockstepState, core: &mut CycleCore, buses: usize) {
+    for (b, t, f) in &st.rx_buf {
+        if buses == 1 {
+            core.on_frame(f, *t);
+        } else {
+            core.on_frame_on(*b, f, *t);
+        }
+    }
+}
+
+/// Sends each bus's frames from the controller: a bus-off send failure is the bus-off state
+/// (already reported by its error frame; reported again, not counted twice), any other
+/// failure a bus error.
+fn send_out(
+    st: &LockstepState,
+    core: &mut CycleCore,
+    buses: &mut [&mut dyn LockstepBus],
+    down: bool,
+) {
+    for (b, bus) in buses.iter_mut().enumerate() {
+        for f in st.outs[b].as_slice() {
+            if down {
                 core.report_bus_error();
-                break;
+                continue;
+            }
+            match bus.controller_send(f) {
+                Ok(()) => {}
+                Err(e) => match e.bus_event() {
+                    Some(ev) => core.report_bus_event(b, ev),
+                    None => core.report_bus_error(),
+                },
             }
         }
     }
 }
 
-/// Sends `st.out` from the controller: a bus-off send failure is the bus-off state (already
-/// reported by its error frame; reported again, not counted twice), any other failure a bus
-/// error.
-fn send_out(st: &LockstepState, core: &mut CycleCore, bus: &mut dyn LockstepBus, down: bool) {
-    for f in st.out.as_slice() {
-        if down {
-            core.report_bus_error();
-            continue;
-        }
-        match bus.controller_send(f) {
-            Ok(()) => {}
-            Err(e) => match e.bus_event() {
-                Some(ev) => core.report_bus_event(0, ev),
-                None => core.report_bus_error(),
-            },
-        }
-    }
-}
-
-/// One lockstep cycle: the peer catches up to the cycle start (its frames go out in time
-/// order), SYNC, the peer answers, frames up to the end of the feedback window reach the
-/// controller, the control step, the setpoints reach the peer. The record carries the
-/// ground truth at the SYNC (when the modules sample their encoders) and virtual timing.
-/// Returns `false` when the controller was silent this cycle (no record was made).
+/// One lockstep cycle on one bus: [`lockstep_cycle_buses`] with `bus` as the only one.
 pub fn lockstep_cycle(
     st: &mut LockstepState,
     core: &mut CycleCore,
@@ -308,6 +343,25 @@ pub fn lockstep_cycle(
     peer: &mut dyn LockstepPeer,
     hooks: &mut StepHooks<'_>,
 ) -> bool {
+    lockstep_cycle_buses(st, core, &mut [bus], peer, hooks)
+}
+
+/// One lockstep cycle: the peer catches up to the cycle start (its frames go out in time
+/// order, each on its bus), SYNC on every bus, the peer answers, frames up to the end of the
+/// feedback window reach the controller, the control step, the setpoints reach the peer.
+/// `buses[b]` carries the platform's bus `b` (the caller gives one per platform bus; the
+/// runners check it). The hooks act on every bus. The record carries the ground truth at the
+/// SYNC (when the modules sample their encoders) and virtual timing. Returns `false` when the
+/// controller was silent this cycle (no record was made).
+pub fn lockstep_cycle_buses(
+    st: &mut LockstepState,
+    core: &mut CycleCore,
+    buses: &mut [&mut dyn LockstepBus],
+    peer: &mut dyn LockstepPeer,
+    hooks: &mut StepHooks<'_>,
+) -> bool {
+    let nb = buses.len().clamp(1, MAX_BUSES);
+    let buses = &mut buses[..nb];
     let k = st.k;
     st.k += 1;
     let t0 = Duration::from_secs_f64(k as f64 * st.period);
@@ -327,70 +381,67 @@ pub fn lockstep_cycle(
     };
     let t_win = Duration::from_secs_f64(k as f64 * st.period + delay + st.window);
     peer.advance_to(t_sync);
-    bus.set_controller_bus_off(peer.controller_bus_off(t_sync));
+    let off = peer.controller_bus_off(t_sync);
+    for bus in buses.iter_mut() {
+        bus.set_controller_bus_off(off);
+    }
     let truth_at_sync = peer.truth();
-    st.flush_peer(bus, peer, t_sync);
-    bus.set_time(t_sync);
-    let mut around = |on: bool| {
-        if let Some(h) = hooks.around_core.as_mut() {
-            h(on)
-        }
-    };
+    st.flush_peer(buses, peer, t_sync);
+    for bus in buses.iter_mut() {
+        bus.set_time(t_sync);
+    }
     if !hooks.controller_silent {
-        around(true);
-        core.start_cycle(t0.as_secs_f64(), &mut st.out);
+        around(hooks, true);
+        core.start_cycle_buses(t0.as_secs_f64(), &mut st.outs[..nb]);
         if delay > 0.0 {
             core.sync_sent_at(t_sync.as_secs_f64());
         }
-        around(false);
+        around(hooks, false);
         // What came in after the last window (late answers, the devices' answers to the
         // requests sent at the end of the last cycle) is taken now, before the SYNC goes
         // out, as the real-time runtime does; what it made due goes out with the SYNC.
-        receive(st, core, bus, hooks);
-        let mut around = |on: bool| {
-            if let Some(h) = hooks.around_core.as_mut() {
-                h(on)
-            }
-        };
-        around(true);
-        for (t, f) in &st.rx_buf {
-            core.on_frame(f, *t);
-        }
-        core.after_late_frames(t0.as_secs_f64(), &mut st.out);
-        around(false);
-        send_out(st, core, bus, hooks.iface_down);
+        receive(st, core, buses, hooks);
+        around(hooks, true);
+        take_frames(st, core, nb);
+        core.after_late_frames_buses(t0.as_secs_f64(), &mut st.outs[..nb]);
+        around(hooks, false);
+        send_out(st, core, buses, hooks.iface_down);
     }
-    deliver_to_peer(bus, peer);
+    deliver_to_peer(buses, peer);
     peer.advance_to(t_win);
-    st.flush_peer(bus, peer, t_win);
-    bus.set_time(t_win);
+    st.flush_peer(buses, peer, t_win);
+    for bus in buses.iter_mut() {
+        bus.set_time(t_win);
+    }
     if hooks.controller_silent {
-        while let Ok(Some(_)) = bus.controller_recv() {}
+        for bus in buses.iter_mut() {
+            while let Ok(Some(_)) = bus.controller_recv() {}
+        }
         return false;
     }
-    receive(st, core, bus, hooks);
+    receive(st, core, buses, hooks);
     if hooks.iface_down {
         core.report_bus_error();
     }
-    let mut around = |on: bool| {
-        if let Some(h) = hooks.around_core.as_mut() {
-            h(on)
-        }
-    };
-    around(true);
-    for (t, f) in &st.rx_buf {
-        core.on_frame(f, *t);
-    }
-    core.finish_cycle(t_win.as_secs_f64(), &mut st.out);
-    around(false);
-    send_out(st, core, bus, hooks.iface_down);
-    deliver_to_peer(bus, peer);
+    around(hooks, true);
+    take_frames(st, core, nb);
+    core.finish_cycle_buses(t_win.as_secs_f64(), &mut st.outs[..nb]);
+    around(hooks, false);
+    send_out(st, core, buses, hooks.iface_down);
+    deliver_to_peer(buses, peer);
     let rec = core.record_mut();
     rec.truth = truth_at_sync;
     rec.timing.period_us = st.period * 1e6;
     rec.timing.wakeup_latency_us = 0.0;
     rec.timing.compute_us = 0.0;
     true
+}
+
+/// Calls the `around_core` hook, if any.
+fn around(hooks: &mut StepHooks<'_>, on: bool) {
+    if let Some(h) = hooks.around_core.as_mut() {
+        h(on)
+    }
 }
 
 /// Runs the core and a peer on virtual time until the core is done, `max_cycles` elapse,
@@ -471,88 +522,14 @@ pub fn run_lockstep_buses(
             given: buses.len(),
         });
     }
-    let nb = platform;
     let mut report = LockstepReport::default();
     let wall = std::time::Instant::now();
     let period = core.platform().dt();
-    let window = core.config().feedback_window.clamp(0.0, period);
-    let mut outs = [FrameBuf::new(), FrameBuf::new()];
-    let mut pending: Vec<(Duration, CanFrame)> = Vec::with_capacity(64);
-    let mut rx: Vec<(usize, f64, CanFrame)> = Vec::with_capacity(64);
+    let mut st = LockstepState::new(core);
     core.arm();
     let mut ready_at: Option<f64> = None;
     let mut next = 0usize;
     let mut stopped = false;
-    // The peer's frames up to `until`, each on its bus.
-    let flush = |peer: &mut dyn LockstepPeer,
-                 buses: &mut [&mut dyn LockstepBus],
-                 pending: &mut Vec<(Duration, CanFrame)>,
-                 until: Duration| {
-        peer.drain_tx(&mut |t, f| pending.push((t, f)));
-        pending.sort_by_key(|(t, _)| *t);
-        let mut sent = 0;
-        for (t, f) in pending.iter() {
-            if *t > until {
-                break;
-            }
-            let b = peer.bus_of(f).min(buses.len() - 1);
-            buses[b].set_time(*t);
-            let _ = buses[b].peer_send(f);
-            sent += 1;
-        }
-        pending.drain(..sent);
-    };
-    let deliver = |peer: &mut dyn LockstepPeer, buses: &mut [&mut dyn LockstepBus]| {
-        let one = buses.len() == 1;
-        for (b, bus) in buses.iter_mut().enumerate() {
-            while let Ok(Some(f)) = bus.peer_recv() {
-                if one {
-                    peer.on_frame(f.timestamp, &f.frame);
-                } else {
-                    peer.on_frame_on(b, f.timestamp, &f.frame);
-                }
-            }
-        }
-    };
-    let receive = |core: &mut CycleCore,
-                   buses: &mut [&mut dyn LockstepBus],
-                   rx: &mut Vec<(usize, f64, CanFrame)>| {
-        rx.clear();
-        for (b, bus) in buses.iter_mut().enumerate() {
-            loop {
-                match bus.controller_recv() {
-                    Ok(Some(f)) => rx.push((b, f.timestamp.as_secs_f64(), f.frame)),
-                    Ok(None) => break,
-                    Err(e) if e.bus_event().is_some() => {
-                        if let Some(ev) = e.bus_event() {
-                            core.report_bus_event(b, ev);
-                        }
-                    }
-                    Err(_) => {
-                        core.report_bus_error();
-                        break;
-                    }
-                }
-            }
-        }
-        // Two buses' frames in time order (one bus keeps the order it delivered them in).
-        if buses.len() > 1 {
-            rx.sort_by(|a, b| a.1.total_cmp(&b.1));
-        }
-    };
-    let send = |core: &mut CycleCore, buses: &mut [&mut dyn LockstepBus], outs: &[FrameBuf]| {
-        for (b, bus) in buses.iter_mut().enumerate() {
-            for f in outs[b].as_slice() {
-                match bus.controller_send(f) {
-                    Ok(()) => {}
-                    Err(e) => match e.bus_event() {
-                        Some(ev) => core.report_bus_event(b, ev),
-                        None => core.report_bus_error(),
-                    },
-                }
-            }
-        }
-    };
     for k in 0..max_cycles {
         if !stopped && stop(k) {
             stopped = true;
@@ -572,57 +549,19 @@ pub fn run_lockstep_buses(
         }
         // Wall-clock time spent inside the core, for reports only (never recorded).
         let mut spent = Duration::ZERO;
-        let t0 = Duration::from_secs_f64(k as f64 * period);
-        let t_win = Duration::from_secs_f64(k as f64 * period + window);
-        peer.advance_to(t0);
-        let off = peer.controller_bus_off(t0);
-        for bus in buses.iter_mut() {
-            bus.set_controller_bus_off(off);
-        }
-        let truth = peer.truth();
-        flush(peer, buses, &mut pending, t0);
-        for bus in buses.iter_mut() {
-            bus.set_time(t0);
-        }
-        let entered = std::time::Instant::now();
-        core.start_cycle_buses(t0.as_secs_f64(), &mut outs[..nb]);
-        spent += entered.elapsed();
-        receive(core, buses, &mut rx);
-        let entered = std::time::Instant::now();
-        for (b, t, f) in &rx {
-            if nb == 1 {
-                core.on_frame(f, *t);
+        let mut entered = std::time::Instant::now();
+        let mut timer = |on: bool| {
+            if on {
+                entered = std::time::Instant::now();
             } else {
-                core.on_frame_on(*b, f, *t);
+                spent += entered.elapsed();
             }
-        }
-        core.after_late_frames_buses(t0.as_secs_f64(), &mut outs[..nb]);
-        spent += entered.elapsed();
-        send(core, buses, &outs);
-        deliver(peer, buses);
-        peer.advance_to(t_win);
-        flush(peer, buses, &mut pending, t_win);
-        for bus in buses.iter_mut() {
-            bus.set_time(t_win);
-        }
-        receive(core, buses, &mut rx);
-        let entered = std::time::Instant::now();
-        for (b, t, f) in &rx {
-            if nb == 1 {
-                core.on_frame(f, *t);
-            } else {
-                core.on_frame_on(*b, f, *t);
-            }
-        }
-        core.finish_cycle_buses(t_win.as_secs_f64(), &mut outs[..nb]);
-        spent += entered.elapsed();
-        send(core, buses, &outs);
-        deliver(peer, buses);
-        let rec = core.record_mut();
-        rec.truth = truth;
-        rec.timing.period_us = period * 1e6;
-        rec.timing.wakeup_latency_us = 0.0;
-        rec.timing.compute_us = 0.0;
+        };
+        let mut hooks = StepHooks {
+            around_core: Some(&mut timer),
+            ..StepHooks::default()
+        };
+        lockstep_cycle_buses(&mut st, core, buses, peer, &mut hooks);
         report.compute.record_us(spent.as_secs_f64() * 1e6);
         report.compute_total_s += spent.as_secs_f64();
         sink(core.record(), core.wheel_xy());

@@ -40,9 +40,9 @@ mod summary;
 pub use self::command_channel::{command_channel, CommandReceiver, CommandSender};
 pub use self::core::{check_feasible, CycleCore, DFL_ENTRY_SPEED, FAULT_RESET_CYCLES};
 pub use self::lockstep::{
-    lockstep_cycle, run_lockstep, run_lockstep_buses, run_lockstep_live, run_lockstep_with,
-    LockstepBus, LockstepError, LockstepPeer, LockstepReport, LockstepState, StepHooks,
-    VirtualLockstepBus,
+    lockstep_cycle, lockstep_cycle_buses, run_lockstep, run_lockstep_buses, run_lockstep_live,
+    run_lockstep_with, LockstepBus, LockstepError, LockstepPeer, LockstepReport, LockstepState,
+    StepHooks, VirtualLockstepBus,
 };
 pub use self::realtime::{
     realtime_setup, run_realtime, run_realtime_buses, run_realtime_io, RealtimeError, RealtimeIo,
