@@ -1752,5 +1752,59 @@ fn lockstep_demo_runs_a_two_bus_platform() {
     assert!((x - 4.5).abs() < 0.005 && (y - 4.5).abs() < 0.005, "{v}");
     let log = std::fs::read_to_string(dir.join("two.log")).unwrap();
     check_two_bus_log(&log, cycles);
+    // `monitor` decodes the log per interface: every frame line names its bus, one summary
+    // per bus, nothing rejected, and the two summaries count every frame of the log.
+    let mon = rollbase()
+        .current_dir(&dir)
+        .args([
+            "monitor",
+            "--summary",
+            "--config",
+            &six,
+            "--candump",
+            "two.log",
+        ])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&mon.stdout);
+    assert_eq!(
+        mon.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&mon.stderr)
+    );
+    let lines: Vec<&str> = text.lines().collect();
+    let (frames, summaries) = lines.split_at(lines.len() - 2);
+    assert_eq!(
+        frames.len(),
+        log.lines().count(),
+        "one line per logged frame"
+    );
+    assert!(
+        frames
+            .iter()
+            .all(|l| l.starts_with("vcan0 (") || l.starts_with("vcan1 (")),
+        "every frame line names its bus"
+    );
+    assert!(
+        frames.iter().all(|l| !l.contains("REJECTED")),
+        "nothing rejected"
+    );
+    let count = |bus: &str| -> usize {
+        let s = summaries
+            .iter()
+            .find(|l| l.starts_with(&format!("{bus}: frames: ")))
+            .unwrap_or_else(|| panic!("no summary for {bus}: {summaries:?}"));
+        assert!(s.contains("rejected: 0 "), "{s}");
+        s[bus.len() + 10..]
+            .split(',')
+            .next()
+            .and_then(|n| n.trim().parse().ok())
+            .unwrap_or_else(|| panic!("frame count in {s}"))
+    };
+    let (n0, n1) = (count("vcan0"), count("vcan1"));
+    println!("monitor of the two-bus log: {n0} frames on vcan0, {n1} on vcan1");
+    assert!(n0 > 0 && n1 > 0);
+    assert_eq!(n0 + n1, frames.len());
     let _ = std::fs::remove_dir_all(dir);
 }

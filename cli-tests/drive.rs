@@ -1153,6 +1153,14 @@ fn a_platform_on_two_buses_drives_with_one_bus_option_each() {
                 .stdin(Stdio::null()),
         );
         sim.wait_for("Ctrl-C to stop.");
+        // `monitor` listens on both buses for the whole drive.
+        let mut monitor = Proc::spawn(
+            "rollbase monitor",
+            rollbase()
+                .args(["monitor", "--config", six, "--bus", &bus0, "--bus", &bus1])
+                .stdin(Stdio::null()),
+        );
+        std::thread::sleep(std::time::Duration::from_millis(300));
         let mut drive = Proc::spawn(
             "rollbase drive",
             rollbase()
@@ -1196,6 +1204,34 @@ fn a_platform_on_two_buses_drives_with_one_bus_option_each() {
                 wrong.push(l.to_string());
             }
         }
+        monitor.signal(libc::SIGINT);
+        let (mstatus, mtext) = monitor.wait();
+        assert!(
+            mstatus.success(),
+            "monitor: {mstatus}\n{}",
+            monitor.stderr()
+        );
+        // Every frame it printed is labelled with its bus; both buses carried SYNCs and
+        // decoded feedback, nothing was rejected.
+        let mut msync = [0u64; 2];
+        for l in mtext.lines() {
+            let bus = if l.starts_with("vcan0 (") {
+                0
+            } else if l.starts_with("vcan1 (") {
+                1
+            } else {
+                panic!("monitor line without its bus: {l}");
+            };
+            assert!(!l.contains("REJECTED"), "{l}");
+            if l.contains(" 080 ") {
+                msync[bus] += 1;
+            }
+        }
+        eprintln!("two buses: the monitor saw SYNCs {msync:?}");
+        assert!(
+            msync[0] >= cycles / 2 && msync[1] >= cycles / 2,
+            "the monitor saw SYNCs {msync:?} of {cycles} cycles per bus"
+        );
         let truth = stop_sim(&mut sim);
         let est = [
             s["final_pose"]["x"].as_f64().unwrap(),

@@ -177,25 +177,7 @@ pub(crate) fn load_platform(path: Option<&Path>) -> Result<Platform, CliError> {
     })
 }
 
-/// The platform file (or the default platform) with the wire profile overridden when
-/// `profile` is given, validated again (the `[cia402]` section must fit the platform), for a
-/// command that serves one bus: a platform on two buses is refused.
-pub(crate) fn load_platform_as(
-    path: Option<&Path>,
-    profile: Option<Protocol>,
-) -> Result<Platform, CliError> {
-    let p = load_platform_profile(path, profile)?;
-    if p.buses() > 1 {
-        // Two buses would share one medium (two SYNCs a cycle): refused.
-        return Err(CliError::Usage(format!(
-            "platform `{}` puts wheels on bus 1: this command serves one bus; `rollbase run` and `rollbase drive` serve two (one `--bus` per platform bus), and so does the real-time `rollbase demo`; or put every wheel on `bus = 0` (`rollbase bus-load --config` tells whether they fit)",
-            p.name
-        )));
-    }
-    Ok(p)
-}
-
-/// [`load_platform_as`] for a command that runs the platform on the buses `buses` (the
+/// [`load_platform_profile`] for a command that runs the platform on the buses `buses` (the
 /// `--bus` options, in order: the b-th serves the wheels with `bus = b`): refused unless
 /// there is one per platform bus, each a different bus.
 pub(crate) fn load_platform_on(
@@ -228,8 +210,10 @@ pub(crate) fn check_buses(p: &Platform, buses: &[String]) -> Result<(), CliError
     Ok(())
 }
 
-/// [`load_platform_as`] for the commands that only read the platform (bus-load): a platform
-/// on two buses is fine there.
+/// The platform file (or the default platform) with the wire profile overridden when
+/// `profile` is given, validated again (the `[cia402]` section must fit the platform), for
+/// the commands that only read the platform or decode its frames (bus-load, monitor): a
+/// platform on two buses is fine there.
 pub(crate) fn load_platform_profile(
     path: Option<&Path>,
     profile: Option<Protocol>,

@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::common::{install_signals, load_platform_as, CliError, SignalAction};
+use super::common::{install_signals, load_platform_profile, CliError, SignalAction};
 
 #[derive(Args, Debug)]
 pub(crate) struct MonitorArgs {
@@ -21,9 +21,11 @@ pub(crate) struct MonitorArgs {
     /// Platform file (the CiA 402 profile's node-IDs and units come from it).
     #[arg(long)]
     pub(crate) config: Option<PathBuf>,
-    /// Live CAN interface to listen on.
+    /// Live CAN interface to listen on; repeat for several (a platform on two buses: one
+    /// `--bus` per bus). With more than one, each frame is labelled with its interface and
+    /// the summary is one per interface.
     #[arg(long, conflicts_with = "candump")]
-    pub(crate) bus: Option<String>,
+    pub(crate) bus: Vec<String>,
     /// candump -L log to decode.
     #[arg(long)]
     pub(crate) candump: Option<PathBuf>,
@@ -101,13 +103,81 @@ impl Decoder {
     }
 }
 
-pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
-    let platform = load_platform_as(a.config.as_deref(), a.profile)?;
-    let mut dec = match platform.protocol {
-        Protocol::Native => Decoder::Native(rollbase_driver::rx::Receiver::new()),
-        Protocol::Cia402 => Decoder::Cia402(platform.cia402()),
+/// One interface's decoder and counts (frames of a platform on two buses are decoded and
+/// counted per bus, as they were sent).
+struct Slot {
+    name: String,
+    dec: Decoder,
+    stats: candump::MonitorStats,
+}
+
+/// The slot of interface `name`, made on its first frame.
+fn slot<'a>(
+    slots: &'a mut Vec<Slot>,
+    name: &str,
+    platform: &rollbase_control::Platform,
+) -> &'a mut Slot {
+    let k = match slots.iter().position(|s| s.name == name) {
+        Some(k) => k,
+        None => {
+            slots.push(Slot {
+                name: name.to_string(),
+                dec: match platform.protocol {
+                    Protocol::Native => Decoder::Native(rollbase_driver::rx::Receiver::new()),
+                    Protocol::Cia402 => Decoder::Cia402(platform.cia402()),
+                },
+                stats: candump::MonitorStats::default(),
+            });
+            slots.len() - 1
+        }
     };
-    let mut stats = candump::MonitorStats::default();
+    &mut slots[k]
+}
+
+/// A decoded frame as text or JSON, labelled with its interface when `label`.
+fn frame_line(s: &mut Slot, ts: Duration, f: &CanFrame, json: bool, label: bool) -> String {
+    if json {
+        let mut v = s.dec.json(&mut s.stats, ts, f);
+        if label {
+            if let Some(o) = v.as_object_mut() {
+                o.insert("bus".into(), serde_json::Value::String(s.name.clone()));
+            }
+        }
+        v.to_string()
+    } else {
+        let line = s.dec.text(&mut s.stats, ts, f);
+        if label {
+            format!("{} {line}", s.name)
+        } else {
+            line
+        }
+    }
+}
+
+/// The summary of one interface, labelled when `label`.
+fn summary_line(s: &Slot, json: bool, label: bool) -> String {
+    let text = s.dec.summary(&s.stats, json);
+    match (label, json) {
+        (false, _) => text,
+        (true, false) => format!("{}: {text}", s.name),
+        (true, true) => {
+            let mut v: serde_json::Value = serde_json::from_str(&text).unwrap_or_default();
+            if let Some(o) = v.as_object_mut() {
+                o.insert("bus".into(), serde_json::Value::String(s.name.clone()));
+            }
+            v.to_string()
+        }
+    }
+}
+
+pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
+    // Any platform: decoding needs no bus of its own (a two-bus platform's frames are told
+    // apart by their interface).
+    let platform = load_platform_profile(a.config.as_deref(), a.profile)?;
+    let mut slots: Vec<Slot> = Vec::new();
+    let mut unparsable = 0u64;
+    // Frames and summaries carry their interface when there may be more than one.
+    let label = a.bus.len() > 1 || (a.bus.is_empty() && platform.buses() > 1);
     // A closed stdout (`rollbase monitor … | head`) ends the monitor quietly.
     let mut out = std::io::stdout().lock();
     macro_rules! emit {
@@ -117,30 +187,51 @@ pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
             }
         };
     }
-    match (&a.bus, &a.candump) {
-        (Some(iface), None) => {
+    match (a.bus.as_slice(), &a.candump) {
+        ([_, ..], None) => {
+            let mut seen = std::collections::HashSet::new();
+            if let Some(dup) = a.bus.iter().find(|b| !seen.insert(b.as_str())) {
+                return Err(CliError::Usage(format!(
+                    "--bus {dup} is given twice: give each interface once"
+                )));
+            }
             let stop = Arc::new(AtomicBool::new(false));
             install_signals(stop.clone(), SignalAction::End);
-            let mut canbus = bus::open(iface)?;
+            let mut buses = Vec::with_capacity(a.bus.len());
+            for iface in &a.bus {
+                buses.push(bus::open(iface)?);
+            }
+            // Frames are labelled with the interface's name (`vcan0` for
+            // socketcand://host/vcan0, as candump logs name them), or with the `--bus` as
+            // given where two names would be the same.
+            let names: Vec<&str> = buses.iter().map(|b| b.name()).collect();
+            let unique = (0..names.len()).all(|i| !names[..i].contains(&names[i]));
+            for (k, iface) in a.bus.iter().enumerate() {
+                let name = if unique { names[k] } else { iface.as_str() };
+                slot(&mut slots, name, &platform);
+            }
+            // Each interface in turn, for a share of 200 ms (frames wait in the socket's
+            // queue meanwhile; each keeps its own receive timestamp).
+            let share = Duration::from_millis(200) / buses.len() as u32;
             while !stop.load(Ordering::Relaxed) {
-                let deadline = std::time::Instant::now() + Duration::from_millis(200);
-                match canbus.recv_until(deadline) {
-                    Ok(Some(f)) => {
-                        if a.json {
-                            let v = dec.json(&mut stats, f.timestamp, &f.frame);
-                            emit!("{v}");
-                        } else {
-                            let line = dec.text(&mut stats, f.timestamp, &f.frame);
-                            emit!("{line}");
+                for (k, canbus) in buses.iter_mut().enumerate() {
+                    let deadline = std::time::Instant::now() + share;
+                    loop {
+                        match canbus.recv_until(deadline) {
+                            Ok(Some(f)) => {
+                                let line =
+                                    frame_line(&mut slots[k], f.timestamp, &f.frame, a.json, label);
+                                emit!("{line}");
+                            }
+                            Ok(None) => break,
+                            Err(e) if e.is_retryable() => break,
+                            Err(e) => return Err(e.into()),
                         }
                     }
-                    Ok(None) => {}
-                    Err(e) if e.is_retryable() => {}
-                    Err(e) => return Err(e.into()),
                 }
             }
         }
-        (None, Some(path)) => {
+        ([], Some(path)) => {
             let f = std::fs::File::open(path).map_err(|e| CliError::File {
                 path: path.display().to_string(),
                 message: format!("cannot open candump log: {e}"),
@@ -154,19 +245,28 @@ pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
                     // A remote frame (RTR) asks for data and carries none: shown as such
                     // (rollbase's protocols use none, so it is counted as rejected).
                     Ok(e) if reader.last_kind() == candump::FrameKind::Remote => {
-                        stats.frames += 1;
-                        stats.rejected += 1;
+                        let s = slot(&mut slots, &e.interface, &platform);
+                        s.stats.frames += 1;
+                        s.stats.rejected += 1;
                         let ts = e.timestamp;
+                        let bus = if label {
+                            format!("{} ", e.interface)
+                        } else {
+                            String::new()
+                        };
                         if a.json {
-                            let v = serde_json::json!({
+                            let mut v = serde_json::json!({
                                 "t": ts.as_secs_f64(), "id": e.frame.id(), "dlc": e.frame.len(),
                                 "remote": true, "accepted": false,
                                 "error": "remote frame (RTR): no data; rollbase's protocols use none",
                             });
+                            if label {
+                                v["bus"] = serde_json::Value::String(e.interface.clone());
+                            }
                             emit!("{v}");
                         } else {
                             emit!(
-                                "({}.{:06}) {:03X} [{}] remote request (RTR), no data  REJECTED: rollbase's protocols use no remote frames",
+                                "{bus}({}.{:06}) {:03X} [{}] remote request (RTR), no data  REJECTED: rollbase's protocols use no remote frames",
                                 ts.as_secs(),
                                 ts.subsec_micros(),
                                 e.frame.id(),
@@ -174,12 +274,9 @@ pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
                             );
                         }
                     }
-                    Ok(e) if a.json => {
-                        let v = dec.json(&mut stats, e.timestamp, &e.frame);
-                        emit!("{v}");
-                    }
                     Ok(e) => {
-                        let line = dec.text(&mut stats, e.timestamp, &e.frame);
+                        let s = slot(&mut slots, &e.interface, &platform);
+                        let line = frame_line(s, e.timestamp, &e.frame, a.json, label);
                         emit!("{line}");
                     }
                     Err(
@@ -187,9 +284,11 @@ pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
                         | candump::CandumpError::Io { .. }),
                     ) => {
                         if a.summary {
-                            stats.unparsable += 1;
-                            let line = dec.summary(&stats, a.json);
-                            emit!("{line}");
+                            unparsable += 1;
+                            for line in summaries(&mut slots, &platform, unparsable, a.json, label)
+                            {
+                                emit!("{line}");
+                            }
                         }
                         return Err(CliError::File {
                             path: path.display().to_string(),
@@ -197,12 +296,12 @@ pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
                         });
                     }
                     Err(e) if a.json => {
-                        stats.unparsable += 1;
+                        unparsable += 1;
                         let v = serde_json::json!({"line": e.line(), "error": e.to_string()});
                         emit!("{v}");
                     }
                     Err(e) => {
-                        stats.unparsable += 1;
+                        unparsable += 1;
                         emit!("{}: {e}", path.display());
                     }
                 }
@@ -215,8 +314,27 @@ pub(crate) fn monitor(a: MonitorArgs) -> Result<i32, CliError> {
         }
     }
     if a.summary {
-        let line = dec.summary(&stats, a.json);
-        emit!("{line}");
+        for line in summaries(&mut slots, &platform, unparsable, a.json, label) {
+            emit!("{line}");
+        }
     }
     Ok(0)
+}
+
+/// The summary lines: one per interface (lines of a log that name no interface, the
+/// unparsable ones, are counted in the first interface's).
+fn summaries(
+    slots: &mut Vec<Slot>,
+    platform: &rollbase_control::Platform,
+    unparsable: u64,
+    json: bool,
+    label: bool,
+) -> Vec<String> {
+    if slots.is_empty() {
+        slot(slots, "(no frames)", platform);
+    }
+    slots[0].stats.unparsable += unparsable;
+    let lines = slots.iter().map(|s| summary_line(s, json, label)).collect();
+    slots[0].stats.unparsable -= unparsable;
+    lines
 }
