@@ -17,7 +17,7 @@
 # 2 on a setup error (missing tool, build failure).
 #
 # Usage: scripts/vcan-vm.sh [--vm|--host] [--no-build] [--timeout SECONDS] [--keep]
-#                           [--checks "0 1 2 3 4 5 6 7"]
+#                           [--checks "0 1 2 3 4 5 6 7 8"]
 #   --vm / --host   force the VM, or force running on the host (needs vcan0)
 #   --no-build      use the binaries already in target/release instead of building them (the
 #                   SocketCAN test binaries still come from `cargo test --no-run`, a no-op when

@@ -7,7 +7,7 @@
 #   ROLLBASE_BIN        directory with rollbase and rollbase-sim
 #   ROLLBASE_TESTS      directory with the driver's SocketCAN test executables
 #   ROLLBASE_WORK       scratch directory (captures, logs)
-#   ROLLBASE_CHECKS     space-separated subset of "0 1 2 3 4 5 6 7" (empty: all)
+#   ROLLBASE_CHECKS     space-separated subset of "0 1 2 3 4 5 6 7 8" (empty: all)
 #   ROLLBASE_CHECKS_AWK the capture decoder (capture.awk)
 #   ROLLBASE_IP         iproute2's ip (default: ip from PATH)
 #   ROLLBASE_DURATION   seconds of the seed-000 run in check 2 (default: the whole scenario)
@@ -35,6 +35,9 @@
 #   7  the CiA 402 profile, `kill -9` of the controller while the platform moves: every drive
 #      reports the lost master by EMCY (RPDO timeout 0x8250 or heartbeat 0x8130) within 70 ms
 #      of the last RPDO and its statusword shows fault (the 0x6007 reaction)
+#   8  two buses (vcan0 and vcan1, made if missing): the six-wheel example with rollbase-sim and
+#      rollbase run taking one --bus each; each bus carries SYNCs and only its own wheels'
+#      frames; vcan1 going down mid-run stops the whole base (the run ends in Fault within 10 s)
 BIN="${ROLLBASE_BIN:?set ROLLBASE_BIN}"
 TESTS="${ROLLBASE_TESTS:-}"
 W="${ROLLBASE_WORK:-/tmp/rollbase}"
@@ -547,8 +550,98 @@ check7() {
 }
 
 # ---------------------------------------------------------------------------------------------
+# Check 8: two buses on the kernel's SocketCAN (issue 25). The six-wheel example (wheels 1-3 on
+# bus 0, 4-6 on bus 1) with vcan0 and vcan1: rollbase-sim and rollbase run take one --bus each,
+# candump listens on both. Each bus carries one SYNC per cycle and only its own wheels' frames;
+# then vcan1 goes down mid-run and the whole base must stop: the run ends within 10 s in Fault
+# (not Stopped, not hanging), and vcan0's SYNCs end with it.
+IF2=vcan1
+check8() {
+    name="two buses on vcan0 + vcan1 (six-wheel)"
+    "$IP" link show "$IF2" >/dev/null 2>&1 || "$IP" link add dev "$IF2" type vcan 2>/dev/null
+    "$IP" link set up "$IF2" 2>/dev/null
+    if ! "$IP" link show "$IF2" 2>/dev/null | grep -q '[<,]UP[,>]'; then
+        record 8 "$name" 1 "no usable $IF2: create it (sudo ip link add dev $IF2 type vcan && sudo ip link set up $IF2)"
+        return
+    fi
+    if ! have rollbase || ! have rollbase-sim; then
+        record 8 "$name" 1 "rollbase or rollbase-sim missing"
+        return
+    fi
+    rollbase config default --example six-wheel >"$W/six.toml" 2>"$W/c8-cfg.err" || {
+        record 8 "$name" 1 "config default --example six-wheel: $(head -c 200 "$W/c8-cfg.err")"
+        return
+    }
+    # One candump per interface: candump ends when an interface it reads goes down.
+    candump -L "$IFACE" >"$W/c8-cap0.log" 2>"$W/c8-candump0.err" &
+    c0=$!
+    candump -L "$IF2" >"$W/c8-cap1.log" 2>"$W/c8-candump1.err" &
+    c1=$!
+    rollbase-sim --config "$W/six.toml" --bus "$IFACE" --bus "$IF2" --start scenario:seed000 \
+        >"$W/c8-sim.out" 2>"$W/c8-sim.err" &
+    sp=$!
+    sleep 1
+    say "check 8: rollbase run --config six-wheel --bus $IFACE --bus $IF2 --trajectory scenario:seed000; $IF2 down at 6 s"
+    rollbase run --config "$W/six.toml" --bus "$IFACE" --bus "$IF2" --trajectory scenario:seed000 \
+        --duration 30 --json >"$W/c8-run.json" 2>"$W/c8-run.err" &
+    rp=$!
+    sleep 6
+    alive=0
+    kill -0 $rp 2>/dev/null && alive=1
+    "$IP" link set "$IF2" down
+    i=0
+    while kill -0 $rp 2>/dev/null && [ $i -lt 100 ]; do sleep 0.1; i=$((i + 1)); done
+    st=0
+    d=""
+    if kill -0 $rp 2>/dev/null; then
+        stop_pid $rp KILL
+        st=1; d="$d run did not end within 10 s of $IF2 going down;"
+        rrc=""
+    else
+        wait $rp
+        rrc=$?
+    fi
+    sleep 0.3
+    "$IP" link set up "$IF2"
+    stop_pid $sp INT
+    stop_pid $c0 TERM
+    stop_pid $c1 TERM
+    sed 's/^/    run| /' "$W/c8-run.err" "$W/c8-run.json" | tail -n 10
+    sed 's/^/    sim| /' "$W/c8-sim.out" "$W/c8-sim.err" | tail -n 8
+    fs=$(jstr "$W/c8-run.json" supervisor_final_state)
+    fr=$(sed -n 's/.*"fault_reason":\("[^"]*"\|null\).*/\1/p' "$W/c8-run.json")
+    cy=$(jnum "$W/c8-run.json" cycles)
+    # Per capture: SYNCs (id 080), frames of a node that is not on this bus (node = id & 0x7F,
+    # wheels 1-3 on bus 0 and 4-6 on bus 1), and the time of the last SYNC.
+    stats() { # file bus
+        awk -v bus="$2" '
+            function hv(s,    i, v) { v = 0; s = toupper(s); for (i = 1; i <= length(s); i++) v = v * 16 + index("0123456789ABCDEF", substr(s, i, 1)) - 1; return v }
+            { split($3, f, "#"); id = hv(f[1]); node = id % 128
+              if (id == 128) { syncs++; t = substr($1, 2, length($1) - 2) + 0; if (!first) first = t; last = t }
+              else if (node >= 1 && node <= 6 && int((node - 1) / 3) != bus) wrong++ }
+            END { printf "syncs=%d wrong=%d span=%.2f\n", syncs, wrong, last - first }' "$1"
+    }
+    s0=$(stats "$W/c8-cap0.log" 0)
+    s1=$(stats "$W/c8-cap1.log" 1)
+    say "check 8: $IFACE: $s0; $IF2: $s1"
+    n0=$(echo "$s0" | sed -n 's/.*syncs=\([0-9]*\).*/\1/p')
+    n1=$(echo "$s1" | sed -n 's/.*syncs=\([0-9]*\).*/\1/p')
+    w0=$(echo "$s0" | sed -n 's/.*wrong=\([0-9]*\).*/\1/p')
+    w1=$(echo "$s1" | sed -n 's/.*wrong=\([0-9]*\).*/\1/p')
+    sp0=$(echo "$s0" | sed -n 's/.*span=\([0-9.]*\).*/\1/p')
+    [ $alive = 1 ] || { st=1; d="$d the run had already ended before $IF2 went down;"; }
+    [ -n "$rrc" ] && [ "$rrc" != 0 ] && [ "$fs" = fault ] || { st=1; d="$d run: exit ${rrc:-none}, final state '$fs' (want a fault);"; }
+    # About 6 s of cycles on each bus before vcan1 went down (at least 4 s' worth: the boot
+    # takes some of it), and vcan0's SYNCs ended within the 10 s the run had to stop.
+    [ "${n0:-0}" -ge 1000 ] && [ "${n1:-0}" -ge 1000 ] || { st=1; d="$d SYNCs $n0 on $IFACE, $n1 on $IF2 (want >= 1000 each);"; }
+    [ "${w0:-1}" = 0 ] && [ "${w1:-1}" = 0 ] || { st=1; d="$d frames on the wrong bus: $w0 on $IFACE, $w1 on $IF2;"; }
+    le "${sp0:-99}" 16 || { st=1; d="$d SYNCs on $IFACE went on for $sp0 s (the run should end within 10 s of the loss);"; }
+    record 8 "$name" $st "$d run: exit $rrc, final $fs after $cy cycles, reason $fr; $IFACE $s0; $IF2 $s1"
+}
+
+# ---------------------------------------------------------------------------------------------
 say "rollbase vcan checks on $IFACE (work dir $W)"
-for n in 0 1 2 3 4 5 6 7; do
+for n in 0 1 2 3 4 5 6 7 8; do
     if want $n; then
         say "check $n ..."
         "check$n"
