@@ -222,6 +222,43 @@ pub fn ideal_path_length(cmds: &[CommandEvent], timeout: f64) -> f64 {
     len
 }
 
+/// [`ideal_path_length`] of the stream as `p` could execute it at most: each twist scaled by
+/// one factor (direction kept, seed 004) so that no wheel (legs at their nominal extension)
+/// turns faster than its speed limit. The part of the ideal path a platform cannot travel
+/// whatever it steers: a stick pushed to 0.8 m/s while turning at 1.5 rad/s asks Justin's
+/// outer wheels for more than their 1.18 m/s.
+pub fn feasible_path_length(cmds: &[CommandEvent], timeout: f64, p: &Platform) -> f64 {
+    let vmax = p.limits.wheel_speed * p.wheel_radius;
+    let scaled: Vec<CommandEvent> = cmds
+        .iter()
+        .map(|ev| match ev.kind {
+            CommandKind::Motion(m) => {
+                let t = m.twist;
+                let worst = p
+                    .wheels
+                    .iter()
+                    .map(|w| {
+                        let (sa, ca) = w.alpha.sin_cos();
+                        let l = w.lambda_nominal;
+                        (t.vx - t.omega * l * sa).hypot(t.vy + t.omega * l * ca)
+                    })
+                    .fold(0.0, f64::max);
+                let k = if worst > vmax { vmax / worst } else { 1.0 };
+                motion(
+                    ev.t,
+                    Twist {
+                        vx: k * t.vx,
+                        vy: k * t.vy,
+                        omega: k * t.omega,
+                    },
+                )
+            }
+            _ => *ev,
+        })
+        .collect();
+    ideal_path_length(&scaled, timeout)
+}
+
 // ---------------------------------------------------------------------------------------
 // Nav2-like follower
 // ---------------------------------------------------------------------------------------
@@ -2067,6 +2104,46 @@ mod tests {
         assert_eq!(v[1].worst.1, 3);
         assert!((v[1].worst.0.value.abs() - (6.0 - l.steer_accel * DT * 0.5) / DT).abs() < 1e-9);
         assert!(limit_violations(&recs[2..3], &p).is_empty());
+    }
+
+    #[test]
+    fn feasible_path_length_scales_a_twist_beyond_the_wheel_speed_limit_as_a_whole() {
+        let p = Platform::justin();
+        let vmax = p.limits.wheel_speed * p.wheel_radius;
+        let slow = motion(
+            0.0,
+            Twist {
+                vx: 0.5,
+                ..Twist::default()
+            },
+        );
+        // Straight ahead at twice the limit: every wheel at 2·vmax, scaled to vmax.
+        let fast = motion(
+            0.0,
+            Twist {
+                vx: 2.0 * vmax,
+                ..Twist::default()
+            },
+        );
+        let end = CommandEvent {
+            t: 1.0,
+            kind: CommandKind::EndOfStream,
+        };
+        assert!((feasible_path_length(&[slow, end], 0.5, &p) - 0.25).abs() < 1e-12);
+        assert!((feasible_path_length(&[fast, end], 0.5, &p) - 0.5 * vmax).abs() < 1e-12);
+        // A spin with translation: the scale comes from the fastest wheel, and the base's
+        // path shrinks by the same factor.
+        let spin = motion(
+            0.0,
+            Twist {
+                vx: 0.8,
+                vy: 0.0,
+                omega: 3.0,
+            },
+        );
+        let ideal = ideal_path_length(&[spin, end], 0.5);
+        let feasible = feasible_path_length(&[spin, end], 0.5, &p);
+        assert!(feasible < ideal && feasible > 0.0, "{feasible} of {ideal}");
     }
 
     #[test]

@@ -123,6 +123,7 @@ fn joystick(profile: Protocol, sigma: f64) {
     let timeout = p.service.command_timeout;
     let clean = joystick_session(JOYSTICK_SEED, JOYSTICK_S, 0.0);
     let ideal = ideal_path_length(&clean, timeout);
+    let feasible = feasible_path_length(&clean, timeout, &p);
     let own = command_reversals(&clean, &p);
     let opts = live_options(profile, JOYSTICK_S + RELEASE_S + 15.0);
     // The path's reference: the noise-free command's run (the issue's measure: noise must
@@ -137,7 +138,8 @@ fn joystick(profile: Protocol, sigma: f64) {
     let fig = LiveFigures::of(&out, JOYSTICK_S, reference, own);
     let issue = fig.misses(&LiveBounds::ISSUE);
     println!(
-        "FLOW {name}: {fig} (ideal path {ideal:.2} m); issue 23 bounds: {}",
+        "FLOW {name}: {fig} (ideal path {ideal:.2} m, {feasible:.2} m of it within the wheel \
+         speed limit); issue 23 bounds: {}",
         issue_text(&issue)
     );
     let achieved = if sigma == 0.0 {
