@@ -99,6 +99,20 @@ class SelfTest:
         err = "".join(self.stderr_lines[-40:])
         raise AssertionError(f"selftest printed nothing matching in {timeout} s ({state}); stderr: {err}")
 
+    def publishers_matched(self, endpoint, count=1, timeout=15.0):
+        """Waits until the node logged that `count` publishers matched its best-effort reader
+        of `endpoint` (e.g. "/cmd_vel"). The writer's own match (`matched`) is the other side
+        of discovery: until the node has matched the writer too, rustdds drops its samples,
+        and a best-effort reader never gets them again."""
+        end = time.monotonic() + timeout
+        want = f"ros2: {endpoint}: a publisher matched ({count} matched now)"
+        while time.monotonic() < end:
+            if any(want in line for line in self.stderr_lines):
+                return
+            time.sleep(0.01)
+        err = "".join(self.stderr_lines[-40:])
+        raise AssertionError(f"the node did not log '{want}' in {timeout} s; stderr: {err}")
+
     def stop(self):
         self.p.stdin.close()
         done = self.next_json(lambda j: j.get("done"), timeout=15)
@@ -257,6 +271,8 @@ def test_twist_and_leg_commands_arrive_exactly(node, dp):
     w_vel = DataWriter(dp, Topic(dp, "rt/cmd_vel", rt.Twist, qos=ROS_QOS), qos=ROS_QOS)
     w_leg = DataWriter(dp, Topic(dp, "rt/leg_commands", rt.Float64MultiArray, qos=ROS_QOS), qos=ROS_QOS)
     matched(w_vel, w_leg)
+    node.publishers_matched("/cmd_vel")
+    node.publishers_matched("/leg_commands")
     cmd = rt.Twist(linear=rt.Vector3(x=0.123456789012345, y=-0.25, z=7.0), angular=rt.Vector3(x=1.0, y=2.0, z=-0.7071067811865476))
     w_vel.write(cmd)
     got = node.next_json(lambda j: j.get("cmd") == "motion")
@@ -305,6 +321,7 @@ def test_stamped_velocity_in_a_foreign_frame_is_refused(dp):
         assert st.ready["node"] == "/robot2/base"
         w = DataWriter(dp, Topic(dp, "rt/robot2/cmd_vel", rt.TwistStamped, qos=ROS_QOS), qos=ROS_QOS)
         matched(w)
+        st.publishers_matched("/robot2/cmd_vel")
         hdr = rt.Header(stamp=rt.Time(sec=1, nanosec=2), frame_id="map")
         w.write(rt.TwistStamped(header=hdr, twist=rt.Twist(linear=rt.Vector3(x=9.0))))
         w.write(rt.TwistStamped(header=rt.Header(frame_id="base_link"), twist=rt.Twist(linear=rt.Vector3(x=0.5))))

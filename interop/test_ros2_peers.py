@@ -188,7 +188,7 @@ def test_best_effort_cmd_vel_publishers_drive():
         dp = DomainParticipant(domain)
         w = DataWriter(dp, Topic(dp, "rt/cmd_vel", rt.Twist, qos=BEST_EFFORT), qos=BEST_EFFORT)
         matched(w)
-        time.sleep(0.2)
+        st.publishers_matched("/cmd_vel")
         w.write(rt.Twist(linear=rt.Vector3(x=0.5, y=0.25), angular=rt.Vector3(z=-0.125)))
         got = st.next_json(lambda j: j.get("cmd") == "motion")
         assert (got["vx"], got["vy"], got["omega"]) == (0.5, 0.25, -0.125), got
@@ -215,7 +215,7 @@ def test_best_effort_and_reliable_leg_publishers_both_match():
         be = DataWriter(dp, topic, qos=BEST_EFFORT)
         rel = DataWriter(dp, topic, qos=ROS_QOS)
         matched(be, rel)
-        time.sleep(0.2)
+        st.publishers_matched("/leg_commands", count=2)
         be.write(rt.Float64MultiArray(data=[0.3, 0.31, 0.32, 0.33]))
         assert st.next_json(lambda j: j.get("cmd") == "legs")["legs"] == [0.3, 0.31, 0.32, 0.33]
         rel.write(rt.Float64MultiArray(data=[0.4, 0.41, 0.42, 0.43]))
@@ -509,7 +509,8 @@ def test_undecodable_samples_are_counted_per_endpoint_and_logged_once():
         w = DataWriter(dp, Topic(dp, "rt/cmd_vel", ShortTwist, qos=ROS_QOS), qos=ROS_QOS)
         q = DataWriter(dp, Topic(dp, "rq/rollbase/stopRequest", OddTrigger, qos=ROS_QOS), qos=ROS_QOS)
         matched(w, q)
-        time.sleep(0.3)
+        st.publishers_matched("/cmd_vel")
+        time.sleep(0.3)  # the stop service's request reader is reliable: its side settles too
         for k in range(3):
             w.write(ShortTwist(x=1.0 + k))
         q.write(OddTrigger(a=1, b=2))

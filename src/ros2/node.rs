@@ -642,17 +642,35 @@ impl CommandSide {
         }
     }
 
-    /// A status event of a command reader (`legs`: the leg reader): a sample that rustdds
-    /// dropped as larger than its fragment cap (`SampleLost`, which the vendored rustdds
-    /// reports for that alone) is counted for the endpoint and logged once per endpoint.
+    /// A status event of a command reader (`legs`: the leg reader).
+    ///
+    /// - A publisher matched or left (`SubscriptionMatched`): logged with the number now
+    ///   matched, so that a user sees their teleop or Nav2 connect. The readers are best
+    ///   effort: a sample a publisher writes before *this* side matched it is dropped by
+    ///   rustdds (a DATA from a writer it does not know yet), even though the publisher's
+    ///   side may already report the match. A publisher that streams loses only its first
+    ///   samples; one that sends a single command should wait for this line.
+    /// - A sample that rustdds dropped as larger than its fragment cap (`SampleLost`, which
+    ///   the vendored rustdds reports for that alone) is counted for the endpoint and logged
+    ///   once per endpoint.
     fn reader_status(&mut self, legs: bool, ev: DataReaderStatus) {
-        let DataReaderStatus::SampleLost { count } = ev else {
-            return;
-        };
         let endpoint = if legs {
             self.leg_topic.clone()
         } else {
             self.vel_topic.clone()
+        };
+        let count = match ev {
+            DataReaderStatus::SampleLost { count } => count,
+            DataReaderStatus::SubscriptionMatched { current, .. } => {
+                let what = if current.count_change() >= 0 {
+                    "a publisher matched"
+                } else {
+                    "a publisher left"
+                };
+                tracing::info!("ros2: {endpoint}: {what} ({} matched now)", current.count());
+                return;
+            }
+            _ => return,
         };
         // The reader's running total (an event lost to a full status channel loses no count).
         let total = u64::try_from(count.count()).unwrap_or(0);
