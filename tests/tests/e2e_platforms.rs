@@ -11,11 +11,11 @@
 //! ([`unwinds_within_the_steering_range`]). The six-wheel example's two buses are run in
 //! tests/tests/e2e_buses.rs.
 //!
-//! Live sessions: only the three-wheel base on the native profile holds the bounds so far.
-//! The same session measured 5.2 mm (three-wheel, CiA 402), 12.9 mm (MPO-700-like, native)
-//! and 6.0 mm (MPO-700-like, CiA 402): the live shaper does not yet know the caster offset
-//! or the CiA 402 latency of these platforms (issue 25 report); those runs are not here
-//! until they hold the bounds.
+//! Live sessions: the three-wheel base (endless steering) and the MPO-700-like base, both
+//! profiles. The MPO-700-like base's casters take their leading-caster angle from the
+//! reference's direction of travel, not from the feedback-corrected command, whose direction
+//! swings without bound as the base stops (control/src/tracking/kinematic.rs, point 8);
+//! before that its session ended in a wheel-slip fault (15.9 mm native, 18.8 mm CiA 402).
 
 use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::ControllerKind;
@@ -159,6 +159,39 @@ fn three_wheel_live_session_native() {
         ControllerKind::Dfl,
     );
     check_live("three-wheel live native", &out);
+}
+
+#[test]
+fn three_wheel_live_session_cia402() {
+    let out = live(
+        endless(Platform::three_wheel()),
+        Protocol::Cia402,
+        ControllerKind::Dfl,
+    );
+    check_live("three-wheel live cia402", &out);
+}
+
+/// The off-centred casters must swing as the base starts in a new direction and roll
+/// backwards as leading casters after the reversal at 12 s (kinematic controller, module
+/// docs point 8).
+#[test]
+fn mpo700_live_session_native() {
+    let out = live(
+        Platform::mpo700(),
+        Protocol::Native,
+        ControllerKind::Kinematic,
+    );
+    check_live("mpo700 live native", &out);
+}
+
+#[test]
+fn mpo700_live_session_cia402() {
+    let out = live(
+        Platform::mpo700(),
+        Protocol::Cia402,
+        ControllerKind::Kinematic,
+    );
+    check_live("mpo700 live cia402", &out);
 }
 
 /// Each wheel's steering angle as its own encoder reports it (one turn), followed by

@@ -35,7 +35,22 @@
 //!    backwards along its direction of travel (after a reversal) rolls backwards as a
 //!    leading caster, its steering held on the leading angle ψ + π + lag by `steer_kp`
 //!    feedback (the caster law would swing it round), until it is more than
-//!    [`LEAD_RELEASE`] off it.
+//!    [`LEAD_RELEASE`] off it. The lag is asin(d (ψ̇ + θ̇)/|u|), which saturates at ±π/2
+//!    when a slow contact turns fast (a twist passing near the wheel's ICR), so a wheel
+//!    enters the mode only if it is within [`LEAD_ENTRY`] of *both* ψ + π + lag and ψ + π:
+//!    without the second condition a wheel standing across its travel counted as leading,
+//!    was held across, and the MPO-700-like live session ended in a wheel-slip fault.
+//!    The leading angle is taken from the *reference's* contact velocity (and its
+//!    derivative and θ̇*) whenever the reference moves the wheel's axis, not from the
+//!    commanded one: the command adds k_pos·(p* − p̂), and as the reference speed goes to
+//!    zero at a stop the direction of that sum swings towards the position error's, which
+//!    says nothing about where the wheel rolls. A leading wheel that followed it steered at
+//!    up to 6 rad/s in the last 0.3 s before the stop of the MPO-700-like live session and
+//!    dragged the base 0.65° round; held on the reference's straight line it does not steer
+//!    at all, and the feedback's small cross component is rolled through (a slip of the
+//!    order of the feedback speed, millimetres per second). The rolling speed and the
+//!    trailing caster law still use the commanded velocity: they are what corrects the
+//!    error.
 //! 9. A wheel with a steering range ([`crate::angle::SteerRange`]) steers to the turn of its
 //!    target inside the range ([`crate::angle::steer_error`]: the long way round when the
 //!    short one crosses a stop), and the branch decision compares errors within the ranges.
@@ -74,7 +89,9 @@ pub const LEAD_RELEASE: f64 = 0.6;
 /// Steering command of an off-centred wheel (module docs, point 8): (steering rate, rolling
 /// speed along the wheel) for the commanded steering-axis velocity `u` (its derivative
 /// `du`) and body rate `omega`, at the measured angle `phi`; `leading` is the wheel's mode
-/// (updated). Near a steering stop the rate towards it fades with the distance left.
+/// (updated). `reference` is the reference's (axis velocity, its derivative, θ̇*): where it
+/// moves the axis (≥ [`REST_SPEED`]) the leading angle is taken from it, else from the
+/// command. Near a steering stop the rate towards it fades with the distance left.
 #[allow(clippy::too_many_arguments)]
 pub fn caster_command(
     w: &crate::model::platform::WheelConfig,
@@ -84,15 +101,29 @@ pub fn caster_command(
     phi: f64,
     kp: f64,
     leading: &mut bool,
+    reference: Option<([f64; 2], [f64; 2], f64)>,
 ) -> (f64, f64) {
     let d = w.caster_offset;
     let sp = u[0].hypot(u[1]);
     let (roll, mut rate) = crate::model::kinematics::caster_inverse(u, phi, omega, d);
-    if sp >= REST_SPEED && sp.is_finite() {
-        let psi = steer_from_velocity(u, du);
-        let lag = crate::model::kinematics::caster_lag(sp, psi.steer_rate + omega, d, true);
+    let (lu, ldu, lom) = match reference {
+        Some((ru, rdu, rom)) if ru[0].hypot(ru[1]) >= REST_SPEED => (ru, rdu, rom),
+        _ => (u, du, omega),
+    };
+    let lsp = lu[0].hypot(lu[1]);
+    if sp >= REST_SPEED && sp.is_finite() && lsp.is_finite() {
+        let psi = steer_from_velocity(lu, ldu);
+        let lag = crate::model::kinematics::caster_lag(lsp, psi.steer_rate + lom, d, true);
         let e = angle::diff(psi.steer_angle + PI + lag, phi);
-        *leading = e.abs() < if *leading { LEAD_RELEASE } else { LEAD_ENTRY };
+        // Entry also asks that the wheel point backwards along its travel: the lag saturates
+        // at ±π/2 when a slow contact turns fast, and a wheel across its travel would
+        // otherwise count as "near its leading angle" and be held there (module docs, 8).
+        let back = angle::diff(psi.steer_angle + PI, phi);
+        *leading = if *leading {
+            e.abs() < LEAD_RELEASE
+        } else {
+            e.abs() < LEAD_ENTRY && back.abs() < LEAD_ENTRY
+        };
         if *leading {
             rate = psi.steer_rate + kp * e;
         }
@@ -217,6 +248,11 @@ impl KinematicController {
             vy: cmdv[1],
             omega: cmdv[2],
         };
+        let rtw = Twist {
+            vx: r.dz[0],
+            vy: r.dz[1],
+            omega: r.dz[2],
+        };
         // 3. per-wheel inverse kinematics
         let mut target = [0.0; MAX_WHEELS];
         let mut ff = [0.0; MAX_WHEELS];
@@ -254,6 +290,20 @@ impl KinematicController {
                     m.wheels[i].steer_angle,
                     g.steer_kp,
                     &mut self.leading[i],
+                    Some((
+                        wheel_velocity_body(p, i, pose.theta, leg, &rtw, r.dz[3 + i]),
+                        wheel_acceleration_body(
+                            p,
+                            i,
+                            pose.theta,
+                            leg,
+                            r.dz[3 + i],
+                            r.ddz[3 + i],
+                            [r.dz[0], r.dz[1], r.dz[2]],
+                            [r.ddz[0], r.ddz[1], r.ddz[2]],
+                        ),
+                        r.dz[2],
+                    )),
                 ));
                 continue;
             }
@@ -455,6 +505,58 @@ mod tests {
         );
         assert_eq!(st.final_command_max, 0.0);
         assert!(st.max_ratio <= 1.0);
+    }
+
+    #[test]
+    fn a_slow_wheel_across_its_travel_does_not_enter_leading_mode() {
+        let p = Platform::mpo700();
+        let w = &p.wheels[0];
+        let kp = p.gains.steer_kp;
+        // Contact moving along +x at 5 mm/s, its direction turning at 1 rad/s:
+        // d ψ̇ / |u| = 0.045 / 0.005 = 9, so the lag saturates at π/2 and the "leading
+        // angle" ψ + π + lag is across the travel, where this wheel stands.
+        let (u, du) = ([0.005, 0.0], [0.0, 0.005]);
+        let across = PI + FRAC_PI_2;
+        let mut leading = false;
+        caster_command(w, u, du, 0.0, across, kp, &mut leading, None);
+        assert!(
+            !leading,
+            "a wheel across its travel must be left to the caster law"
+        );
+        // The same slow contact with the wheel pointing backwards does lead.
+        let mut leading = false;
+        caster_command(w, u, [0.0; 2], 0.0, PI + 0.1, kp, &mut leading, None);
+        assert!(leading, "a wheel pointing backwards along its travel leads");
+    }
+
+    #[test]
+    fn a_leading_wheel_holds_the_reference_line_while_the_command_swings_at_a_stop() {
+        let p = Platform::mpo700();
+        let w = &p.wheels[0];
+        let kp = p.gains.steer_kp;
+        // Backing along −x, slowing down, 6 cm/s left; the wheel points forwards (φ = 0)
+        // and rolls backwards as a leading caster. Position feedback adds 1 cm/s across.
+        let (ru, rdu) = ([-0.06, 0.0], [0.3, 0.0]);
+        let (u, du) = ([-0.06, 0.01], [0.3, 0.0]);
+        let mut leading = true;
+        let (rate, roll) =
+            caster_command(w, u, du, 0.0, 0.0, kp, &mut leading, Some((ru, rdu, 0.0)));
+        assert!(leading, "still leading on the reference's line");
+        assert!(
+            rate.abs() < 1e-9,
+            "no steering on a straight stop: {rate} rad/s"
+        );
+        assert!(
+            (roll + 0.06).abs() < 1e-12,
+            "rolls the commanded speed along itself: {roll}"
+        );
+        // Steered by the command's direction instead: (u × du)/|u|² = −0.81 rad/s, lag
+        // asin(−0.045·0.81/0.061) ≈ −0.64 rad, so the leading angle is 0.8 rad away, the
+        // wheel is released and the caster law starts to swing it round.
+        let mut leading = true;
+        let (rate, _) = caster_command(w, u, du, 0.0, 0.0, kp, &mut leading, None);
+        assert!(!leading, "the command's direction releases the wheel");
+        assert!(rate > 0.2, "and it turns: {rate} rad/s");
     }
 
     #[test]
