@@ -404,23 +404,37 @@ pub fn build_live(opts: &LiveOptions) -> (CycleCore, Simulator, VirtualLockstepB
 }
 
 /// Runs the base service in lockstep through the full frame path with the given command
-/// events (times from the moment the driver is ready); the summary's errors are against the
-/// simulator's truth, relative to the shaped reference.
+/// events (times from the moment the driver is ready), on as many virtual buses as the
+/// platform has; the summary's errors are against the simulator's truth, relative to the
+/// shaped reference.
 pub fn run_live(
     opts: &LiveOptions,
     commands: &[rollbase_control::service::ports::CommandEvent],
 ) -> RunOutcome {
-    let (mut core, mut sim, mut bus) = build_live(opts);
+    use rollbase_control::runtime::LockstepBus;
+    let (mut core, mut sim, bus) = build_live(opts);
     let platform = core.platform().clone();
+    // One medium per platform bus (the first as `build_live` made it).
+    let mut media: Vec<VirtualLockstepBus> =
+        std::iter::once(bus)
+            .chain((1..core.buses().max(1) as u64).map(|b| {
+                VirtualLockstepBus::new(FaultModel::none(), opts.seed ^ 0x5EED ^ (b << 32))
+            }))
+            .collect();
+    let mut buses: Vec<&mut dyn LockstepBus> = media
+        .iter_mut()
+        .map(|m| m as &mut dyn LockstepBus)
+        .collect();
     let max_cycles = (opts.max_seconds * platform.cycle_hz) as u64;
     let mut records = Vec::with_capacity(max_cycles as usize);
     let mut summary = RunSummary::new("live");
-    let report = rollbase_control::runtime::run_lockstep_live(
+    let report = rollbase_control::runtime::run_lockstep_buses(
         &mut core,
-        &mut bus,
+        &mut buses,
         &mut sim,
         commands,
         max_cycles,
+        &mut |_| false,
         &mut |r, _| {
             summary.update(r);
             records.push(*r);

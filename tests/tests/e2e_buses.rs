@@ -1,13 +1,14 @@
 //! Two buses (issue 25): the six-wheel example (wheels 1–3 on bus 0, 4–6 on bus 1), each
-//! bus on its own virtual medium with its own SYNC, both wire profiles; the bus load per
-//! bus; one bus lost → a controlled stop of the whole base.
+//! bus on its own virtual medium with its own SYNC, both wire profiles, seed 000 and a live
+//! session with leg commands; the bus load per bus; one bus lost → a controlled stop of the
+//! whole base.
 
 use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::ControllerKind;
 use rollbase_control::{Platform, Protocol};
 use rollbase_tests::{
     assert_commands_within_limits, assert_controlled_stop_from, assert_tracking_bounds, run_buses,
-    RunOptions, RunOutcome,
+    run_live, twist_at, LiveOptions, RunOptions, RunOutcome,
 };
 
 fn opts(profile: Protocol) -> RunOptions {
@@ -69,6 +70,86 @@ fn six_wheels_on_two_buses_run_seed000_native() {
 fn six_wheels_on_two_buses_run_seed000_cia402() {
     let out = run_buses(&opts(Protocol::Cia402), None);
     check_two_buses("six-wheel cia402", &out);
+}
+
+/// A live session on both buses: forwards, sideways, a turn on the spot, an arc, backwards
+/// (3 s each, a command every 0.3 s), the legs in to 0.42 m at 4 s and out to 0.52 m at 10 s,
+/// release.
+fn live_session(profile: Protocol) -> RunOutcome {
+    use rollbase_control::service::ports::{CommandEvent, CommandKind, LegTargets};
+    let opts = LiveOptions {
+        profile,
+        max_seconds: 40.0,
+        platform: Some(Platform::six_wheel()),
+        ..LiveOptions::default()
+    };
+    let steps = [
+        (0.3, 0.0, 0.0),
+        (0.0, 0.25, 0.0),
+        (0.0, 0.0, 0.6),
+        (0.2, 0.1, 0.3),
+        (-0.2, 0.0, 0.0),
+    ];
+    let mut cmds = Vec::new();
+    let mut t = 0.0;
+    for &(vx, vy, om) in &steps {
+        for k in 0..10 {
+            cmds.push(twist_at(t + 0.3 * f64::from(k), vx, vy, om));
+        }
+        t += 3.0;
+    }
+    for (at, leg) in [(4.0, 0.42), (10.0, 0.52)] {
+        cmds.push(CommandEvent {
+            t: at,
+            kind: CommandKind::Legs(LegTargets::from_slice(&[leg; 6])),
+        });
+    }
+    cmds.sort_by(|a, b| a.t.total_cmp(&b.t));
+    for k in 0..5 {
+        cmds.push(twist_at(t + 0.3 * f64::from(k), 0.0, 0.0, 0.0));
+    }
+    cmds.push(CommandEvent {
+        t: t + 3.0,
+        kind: CommandKind::EndOfStream,
+    });
+    run_live(&opts, &cmds)
+}
+
+fn check_live_session(name: &str, out: &RunOutcome) {
+    check_two_buses(name, out);
+    assert_eq!(
+        out.summary.rejected_commands, 0,
+        "{name}: every command taken"
+    );
+    let last = out.records.last().expect("records");
+    let (pose, _) = last.truth.expect("truth");
+    assert!(pose.x.hypot(pose.y) > 0.5, "{name}: ends at {pose:?}");
+    for (i, w) in last.measurement.wheels[..6].iter().enumerate() {
+        assert!(
+            (w.leg - 0.52).abs() < 0.002,
+            "{name}: leg {i} ends at {} m, commanded 0.52 m",
+            w.leg
+        );
+    }
+    // The legs went in first: every leg was below 0.43 m at some point.
+    for i in 0..6 {
+        let lo = out
+            .records
+            .iter()
+            .map(|r| r.measurement.wheels[i].leg)
+            .fold(f64::INFINITY, f64::min);
+        assert!(lo < 0.43, "{name}: leg {i} never went in (lowest {lo} m)");
+    }
+}
+
+#[test]
+fn six_wheels_on_two_buses_live_session_native() {
+    check_live_session("six-wheel live native", &live_session(Protocol::Native));
+}
+
+#[test]
+fn six_wheels_on_two_buses_live_session_cia402() {
+    check_live_session("six-wheel live cia402", &live_session(Protocol::Cia402));
 }
 
 #[test]
