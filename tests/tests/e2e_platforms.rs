@@ -288,17 +288,19 @@ fn three_wheel_unwinds_within_its_steering_range_cia402() {
     unwinds_within_the_steering_range(Protocol::Cia402);
 }
 
-/// The steering-range test for live commands: a 20 Hz stream whose direction of travel
-/// turns on at 0.5 rad/s (0.3 m/s, no rotation) for 20 s, 10 rad in all, so every wheel of
-/// the three-wheel example would have to steer 1.6 turns, past its ±170° stops. The
-/// shaper stops the base before a wheel would come within [`RANGE_MARGIN`] of a stop and
-/// turns it back within its range (to the other branch: it then rolls backwards), then
-/// drives on (when this was written: stops at 156°, twice, about 2 s each). Every cycle each wheel's steering angle
-/// (its encoder, followed by continuity) stays inside its range, every command pair within
-/// the limits, and the base still travels most of the commanded path.
+/// The steering-range test for live commands: a 20 Hz stream at 0.3 m/s (no rotation) whose
+/// direction of travel turns 540° in 18 s — in 45° steps every 1.5 s, or `continuous`ly at
+/// 0.52 rad/s — so every wheel of the three-wheel example would have to steer 1.5 turns,
+/// past its ±170° stops. The shaper stops the base before a wheel would come within
+/// [`RANGE_MARGIN`] of a stop and turns it back within its range (to the other branch: it
+/// then rolls backwards), then drives on. Every cycle each wheel's steering angle (its
+/// encoder, followed by continuity) stays inside its range, every command pair within the
+/// limits, the tracking within the bounds, and the base still travels most of the commanded
+/// path. The continuous stream moves the wheels' aim while they unwind (11.4 mm when they
+/// turned at 90 % of their rate limit: shaper module docs, "Steering ranges").
 ///
 /// [`RANGE_MARGIN`]: rollbase_control::reference::shaper::RANGE_MARGIN
-fn live_unwinds_within_the_steering_range(profile: Protocol) {
+fn live_unwinds_within_the_steering_range(profile: Protocol, continuous: bool) {
     use rollbase_control::service::ports::{CommandEvent, CommandKind};
     let p = Platform::three_wheel();
     let ranges: Vec<_> = p
@@ -313,13 +315,18 @@ fn live_unwinds_within_the_steering_range(profile: Protocol) {
         platform: Some(p),
         ..LiveOptions::default()
     };
-    // The direction steps on by 45° every 1.5 s, 12 steps (540°).
+    // The direction steps on by 45° every 1.5 s, 12 steps (540°), or turns continuously at
+    // the same mean rate (0.52 rad/s), so that the aim moves while the wheels unwind.
     let (speed, step, hold, steps) = (0.3, std::f64::consts::FRAC_PI_4, 1.5, 12);
     let secs = hold * steps as f64;
     let mut cmds = Vec::new();
     let mut t = 0.0;
     while t < secs {
-        let b = step * (t / hold).floor();
+        let b = if continuous {
+            step * t / hold
+        } else {
+            step * (t / hold).floor()
+        };
         cmds.push(twist_at(t, speed * b.cos(), speed * b.sin(), 0.0));
         t += 0.05;
     }
@@ -332,7 +339,10 @@ fn live_unwinds_within_the_steering_range(profile: Protocol) {
     });
     let out = run_live(&opts, &cmds);
     let s = &out.summary;
-    let name = format!("three-wheel ±170° live {profile:?}");
+    let name = format!(
+        "three-wheel ±170° live {profile:?}{}",
+        if continuous { ", continuous" } else { "" }
+    );
     println!("{name}: {}", s.to_json());
     let (_, lo, hi) = follow_steering(&out, &ranges, &name);
     let mut dist = 0.0;
@@ -371,10 +381,20 @@ fn live_unwinds_within_the_steering_range(profile: Protocol) {
 
 #[test]
 fn three_wheel_live_unwinds_within_its_steering_range_native() {
-    live_unwinds_within_the_steering_range(Protocol::Native);
+    live_unwinds_within_the_steering_range(Protocol::Native, false);
 }
 
 #[test]
 fn three_wheel_live_unwinds_within_its_steering_range_cia402() {
-    live_unwinds_within_the_steering_range(Protocol::Cia402);
+    live_unwinds_within_the_steering_range(Protocol::Cia402, false);
+}
+
+#[test]
+fn three_wheel_live_unwinds_a_continuous_turn_within_its_steering_range_native() {
+    live_unwinds_within_the_steering_range(Protocol::Native, true);
+}
+
+#[test]
+fn three_wheel_live_unwinds_a_continuous_turn_within_its_steering_range_cia402() {
+    live_unwinds_within_the_steering_range(Protocol::Cia402, true);
 }

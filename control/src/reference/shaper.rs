@@ -176,10 +176,21 @@
 //!   wheel turns back within its range while it stands, and the platform starts again,
 //!   the wheel then rolling on the other branch (backwards).
 //!
+//! A wheel with a range turns at `ranged_turn_fraction` (0.7) of its steering rate limit,
+//! not at `speed_fraction` (0.9) as endless wheels do. Its turns are long (an unwinding is
+//! about half a turn, where an endless wheel never turns more than a quarter), and the base
+//! rolls off as soon as the turn ends. At 90 % the steering drive lagged about 10° behind
+//! the reference by the end of an unwinding, with only 10 % of the rate left for the
+//! feedback to catch up; braking, it overshot by about as much, and the base rolled off with
+//! its wheels that far off their direction: 11.4 mm on a stream whose direction turns
+//! continuously at 0.52 rad/s. At 70 %: 3.2 mm (native) and 3.6 mm (CiA 402); by the
+//! shares, half a turn then takes 0.94 s instead of 0.83 s.
+//!
 //! On the three-wheel example (±170°), a stream whose direction steps on by 45° every 1.5 s
-//! through 540° keeps every wheel inside [−6°, 135°] and travels 4.7 m of the 5.4 m
-//! commanded, within 2.7 mm (`tests/tests/e2e_platforms.rs`); without this the wheels stuck
-//! at +170° and the base travelled 2.05 m.
+//! through 540° keeps every wheel inside [−3°, 135°] and travels 4.6 m of the 5.4 m
+//! commanded, within 1.7 mm; the same stream turning continuously keeps them inside [−5°,
+//! 170°], within 3.6 mm (`tests/tests/e2e_platforms.rs`). Without the unwinding the wheels
+//! stuck at +170° and the base travelled 2.05 m.
 //!
 //! # Legs
 //!
@@ -339,6 +350,9 @@ pub struct ShaperConfig {
     /// Sideways speed (m/s) a turning wheel may roll with while it is not yet aligned.
     /// Default 3 mm/s.
     pub slip_speed: f64,
+    /// Fraction of the steering rate limit at which a wheel with a steering range turns
+    /// (module docs, "Steering ranges"). Default 0.7.
+    pub ranged_turn_fraction: f64,
 }
 
 impl Default for ShaperConfig {
@@ -359,6 +373,7 @@ impl Default for ShaperConfig {
             deadband: 0.01,
             noise_deadband: 2.5,
             slip_speed: 0.003,
+            ranged_turn_fraction: 0.7,
         }
     }
 }
@@ -2210,7 +2225,13 @@ impl Shaper {
                     };
                     goal = dir + off.clamp(-room, room);
                 }
-                let (phi, r1, r2) = self.turn[i].step(goal, sr, sacc, self.dt, self.window);
+                // A wheel with a steering range turns slower (`ranged_turn_fraction`).
+                let rate = if self.ranges[i].is_some() {
+                    sr.min(self.cfg.ranged_turn_fraction * self.limits.steer_rate)
+                } else {
+                    sr
+                };
+                let (phi, r1, r2) = self.turn[i].step(goal, rate, sacc, self.dt, self.window);
                 self.steer[i] = phi;
                 self.steer_rate[i] = r1;
                 self.steer_accel[i] = r2;
