@@ -472,6 +472,47 @@ pub fn twist_at(
     }
 }
 
+/// The live session of the example-platform tests: forwards (0.3 m/s), sideways (0.25 m/s),
+/// a turn on the spot (0.6 rad/s), an arc (0.2 m/s, 0.1 m/s, 0.3 rad/s), backwards (0.2 m/s),
+/// 3 s each with the twist repeated every 0.3 s; the leg commands `legs` ((time, targets))
+/// sorted in; then five zero twists 0.3 s apart and the end of the stream 3 s after the last
+/// step.
+pub fn five_step_session(
+    legs: &[(f64, &[f64])],
+) -> Vec<rollbase_control::service::ports::CommandEvent> {
+    use rollbase_control::service::ports::{CommandEvent, CommandKind, LegTargets};
+    let steps = [
+        (0.3, 0.0, 0.0),
+        (0.0, 0.25, 0.0),
+        (0.0, 0.0, 0.6),
+        (0.2, 0.1, 0.3),
+        (-0.2, 0.0, 0.0),
+    ];
+    let mut cmds = Vec::new();
+    let mut t = 0.0;
+    for &(vx, vy, om) in &steps {
+        for k in 0..10 {
+            cmds.push(twist_at(t + 0.3 * f64::from(k), vx, vy, om));
+        }
+        t += 3.0;
+    }
+    for &(at, targets) in legs {
+        cmds.push(CommandEvent {
+            t: at,
+            kind: CommandKind::Legs(LegTargets::from_slice(targets)),
+        });
+    }
+    cmds.sort_by(|a, b| a.t.total_cmp(&b.t));
+    for k in 0..5 {
+        cmds.push(twist_at(t + 0.3 * f64::from(k), 0.0, 0.0, 0.0));
+    }
+    cmds.push(CommandEvent {
+        t: t + 3.0,
+        kind: CommandKind::EndOfStream,
+    });
+    cmds
+}
+
 /// Asserts that every command sent on every cycle keeps every actuator within its speed and
 /// acceleration limit ([`rollbase_control::reference::limits::check_command`]): every consecutive pair
 /// of commands, in every mode and across every hand-over between modes (align, track, halt,

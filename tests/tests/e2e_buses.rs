@@ -7,8 +7,8 @@ use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::ControllerKind;
 use rollbase_control::{Platform, Protocol};
 use rollbase_tests::{
-    assert_commands_within_limits, assert_controlled_stop_from, assert_tracking_bounds, run_buses,
-    run_live, twist_at, LiveOptions, RunOptions, RunOutcome,
+    assert_commands_within_limits, assert_controlled_stop_from, assert_tracking_bounds,
+    five_step_session, run_buses, run_live, LiveOptions, RunOptions, RunOutcome,
 };
 
 fn opts(profile: Protocol) -> RunOptions {
@@ -72,46 +72,16 @@ fn six_wheels_on_two_buses_run_seed000_cia402() {
     check_two_buses("six-wheel cia402", &out);
 }
 
-/// A live session on both buses: forwards, sideways, a turn on the spot, an arc, backwards
-/// (3 s each, a command every 0.3 s), the legs in to 0.42 m at 4 s and out to 0.52 m at 10 s,
-/// release.
+/// The five-step live session ([`five_step_session`]) on both buses, the legs in to 0.42 m
+/// at 4 s and out to 0.52 m at 10 s.
 fn live_session(profile: Protocol) -> RunOutcome {
-    use rollbase_control::service::ports::{CommandEvent, CommandKind, LegTargets};
     let opts = LiveOptions {
         profile,
         max_seconds: 40.0,
         platform: Some(Platform::six_wheel()),
         ..LiveOptions::default()
     };
-    let steps = [
-        (0.3, 0.0, 0.0),
-        (0.0, 0.25, 0.0),
-        (0.0, 0.0, 0.6),
-        (0.2, 0.1, 0.3),
-        (-0.2, 0.0, 0.0),
-    ];
-    let mut cmds = Vec::new();
-    let mut t = 0.0;
-    for &(vx, vy, om) in &steps {
-        for k in 0..10 {
-            cmds.push(twist_at(t + 0.3 * f64::from(k), vx, vy, om));
-        }
-        t += 3.0;
-    }
-    for (at, leg) in [(4.0, 0.42), (10.0, 0.52)] {
-        cmds.push(CommandEvent {
-            t: at,
-            kind: CommandKind::Legs(LegTargets::from_slice(&[leg; 6])),
-        });
-    }
-    cmds.sort_by(|a, b| a.t.total_cmp(&b.t));
-    for k in 0..5 {
-        cmds.push(twist_at(t + 0.3 * f64::from(k), 0.0, 0.0, 0.0));
-    }
-    cmds.push(CommandEvent {
-        t: t + 3.0,
-        kind: CommandKind::EndOfStream,
-    });
+    let cmds = five_step_session(&[(4.0, &[0.42; 6]), (10.0, &[0.52; 6])]);
     run_live(&opts, &cmds)
 }
 

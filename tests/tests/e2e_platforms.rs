@@ -21,8 +21,8 @@ use rollbase_control::runtime::scenario::Scenario;
 use rollbase_control::runtime::ControllerKind;
 use rollbase_control::{Platform, Protocol};
 use rollbase_tests::{
-    assert_commands_within_limits, assert_tracking_bounds, run, run_live, twist_at, LiveOptions,
-    RunOptions, RunOutcome,
+    assert_commands_within_limits, assert_tracking_bounds, five_step_session, run, run_live,
+    twist_at, LiveOptions, RunOptions, RunOutcome,
 };
 
 fn seed000(p: Platform, profile: Protocol, controller: ControllerKind) -> RunOutcome {
@@ -97,10 +97,9 @@ fn mpo700_off_centred_runs_seed000_cia402() {
     check_seed000("mpo700 cia402", &out);
 }
 
-/// A live session: drive forwards, sideways, turn on the spot, an arc, back; a leg command
-/// in the middle (refused: no legs); release.
+/// The five-step live session ([`five_step_session`]) with a leg command at 4 s (refused:
+/// no legs).
 fn live(p: Platform, profile: Protocol, controller: ControllerKind) -> RunOutcome {
-    use rollbase_control::service::ports::{CommandEvent, CommandKind, LegTargets};
     let n = p.n();
     let mut opts = LiveOptions {
         profile,
@@ -109,33 +108,7 @@ fn live(p: Platform, profile: Protocol, controller: ControllerKind) -> RunOutcom
         ..LiveOptions::default()
     };
     opts.runtime.controller = controller;
-    let steps = [
-        (0.3, 0.0, 0.0),
-        (0.0, 0.25, 0.0),
-        (0.0, 0.0, 0.6),
-        (0.2, 0.1, 0.3),
-        (-0.2, 0.0, 0.0),
-    ];
-    let mut cmds = Vec::new();
-    let mut t = 0.0;
-    for &(vx, vy, om) in &steps {
-        for k in 0..10 {
-            cmds.push(twist_at(t + 0.3 * f64::from(k), vx, vy, om));
-        }
-        t += 3.0;
-    }
-    cmds.push(CommandEvent {
-        t: 4.0,
-        kind: CommandKind::Legs(LegTargets::from_slice(&vec![0.3; n])),
-    });
-    cmds.sort_by(|a, b| a.t.total_cmp(&b.t));
-    for k in 0..5 {
-        cmds.push(twist_at(t + 0.3 * f64::from(k), 0.0, 0.0, 0.0));
-    }
-    cmds.push(CommandEvent {
-        t: t + 3.0,
-        kind: CommandKind::EndOfStream,
-    });
+    let cmds = five_step_session(&[(4.0, &vec![0.3; n])]);
     run_live(&opts, &cmds)
 }
 
