@@ -51,7 +51,8 @@ const JOYSTICK_SEED: u64 = 23;
 /// the ideal execution's path (53.6 % before; the noisy ones ≥ 94 % of the noise-free run's,
 /// the bound); up to 25 steering reversals per wheel beyond the command's own in
 /// 20 s (30 before); 15.5–19.2 % of the cycles aligning with the base standing (18–27 %
-/// before).
+/// before). Since the wheel-speed cap takes the legs where they stand: 58.7 % (noisy: 97 %
+/// and 101 % of the noise-free run's path), up to 24 reversals beyond, 17.0–18.1 %.
 const JOYSTICK_ACHIEVED: LiveBounds = LiveBounds {
     path_share: 0.55,
     reversals_per_2s: 2.6,
