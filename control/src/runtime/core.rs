@@ -1993,12 +1993,14 @@ fn dfl_entry_reference(
 /// wheel steered by it).
 ///
 /// An off-centred wheel is not steered by the direction of its axis' velocity but by the
-/// caster law φ̇ = (u·h⊥)/d − θ̇ at its measured angle (controller 2, point 8), so its steering
-/// acceleration is that law's derivative: with ḣ⊥ = −φ̇ h,
-/// φ̈ = (u̇·h⊥ − φ̇ (u·h))/d − θ̈. The direction's φ̈* it had before is zero on a straight
-/// start, where a caster swings hardest: the MPO-700-like live session's worst moment, two
-/// casters swinging ~130° as the base starts backwards, went from 4.26 to 3.55 mm (native)
-/// and from 4.53 to 3.81 mm (CiA 402) with this. A leading caster (held near its leading
+/// caster law φ̇ = (u·h⊥)/d − θ̇ at its measured angle (controller 2, point 8), and it rolls
+/// at u·h along its own heading h, which turns with it (ḣ = φ̇ h⊥, ḣ⊥ = −φ̇ h). So its
+/// accelerations are the law's derivatives: φ̈ = (u̇·h⊥ − φ̇ (u·h))/d − θ̈ and
+/// d(u·h)/dt = u̇·h + φ̇ (u·h⊥). The direction's φ̈* it had before is zero on a straight
+/// start, where a caster swings hardest, and u̇·h alone misses the roll a swing builds up:
+/// the MPO-700-like live session's worst moment, two casters swinging ~130° as the base
+/// starts backwards, went from 4.26 to 1.80 mm (native) and from 4.53 to 2.06 mm (CiA 402)
+/// (3.55 / 3.81 mm with the steering term alone). A leading caster (held near its leading
 /// angle by feedback) is at the law's equilibrium there, where the two agree.
 fn lag_compensation(
     p: &Platform,
@@ -2013,15 +2015,17 @@ fn lag_compensation(
     let held = crate::tracking::dfl::held_wheels(p, reference);
     for i in 0..cmd.n.min(p.n()).min(MAX_WHEELS) {
         let phi = meas.wheels[i].steer_angle;
-        let du = crate::reference::limits::contact_kinematics(p, i, reference)[1];
-        let a = (du[0] * phi.cos() + du[1] * phi.sin()) / p.wheel_radius;
+        let [u, du, _] = crate::reference::limits::contact_kinematics(p, i, reference);
+        let (s, c) = phi.sin_cos();
+        let (along, across) = (u[0] * c + u[1] * s, -u[0] * s + u[1] * c);
+        let (dalong, dacross) = (du[0] * c + du[1] * s, -du[0] * s + du[1] * c);
+        let mut a = dalong / p.wheel_radius;
         let sa = if p.wheels[i].off_centred() {
-            let k = crate::reference::limits::contact_kinematics(p, i, reference);
-            let (u, du) = (k[0], k[1]);
             let d = p.wheels[i].caster_offset;
-            let (s, c) = phi.sin_cos();
-            let rate = (-u[0] * s + u[1] * c) / d - reference.dz[2];
-            ((-du[0] * s + du[1] * c) - rate * (u[0] * c + u[1] * s)) / d - reference.ddz[2]
+            let rate = across / d - reference.dz[2];
+            // The rolling speed u·h turns with the wheel: d(u·h)/dt = u̇·h + φ̇ (u·h⊥).
+            a += rate * across / p.wheel_radius;
+            (dacross - rate * along) / d - reference.ddz[2]
         } else if held[i] {
             reference.steer.accel[i]
         } else {
@@ -2126,7 +2130,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_caster_is_lag_compensated_with_the_caster_laws_acceleration() {
+    fn a_caster_is_lag_compensated_with_the_caster_laws_accelerations() {
         let p = Platform::mpo700();
         let ts = p.drives.steer_time_constant;
         let d = p.wheels[0].caster_offset;
@@ -2159,6 +2163,21 @@ mod tests {
             out.wheels[1].steer_rate.abs() < 1e-12,
             "a trailing caster along its travel does not swing: {}",
             out.wheels[1].steer_rate
+        );
+        // Its rolling speed u·h grows as it swings: φ̇ (u·h⊥) = (−v/d)(−v) = v²/d, although
+        // u̇·h = 0 across; along its travel the rolling acceleration is the base's.
+        let (tw, r) = (p.drives.wheel_time_constant, p.wheel_radius);
+        let want = tw * (0.1 * 0.1 / d) / r;
+        assert!(
+            (out.wheels[0].wheel_speed - want).abs() < 1e-9,
+            "across: {} rad/s, want {want}",
+            out.wheels[0].wheel_speed
+        );
+        let want = tw * 0.5 / r;
+        assert!(
+            (out.wheels[1].wheel_speed - want).abs() < 1e-9,
+            "along: {} rad/s, want {want}",
+            out.wheels[1].wheel_speed
         );
     }
 
