@@ -533,3 +533,75 @@ fn an_uncompensated_mirrored_motor_is_caught_before_the_base_drives_off() {
         assert_eq!(out.summary.final_state, "fault");
     }
 }
+
+/// A wheel with a steering range turns to its rest angle after homing inside the range
+/// (issue 25): the three-wheel example (±170°), wheel 0 powered on at −150° on its home
+/// switch and homed by the drive (method 19) at the switch's edge, −160°, with its rest
+/// angle at +160°. The short way round (−40°, through ±180°) would wind
+/// it past its −170° stop; it must turn the long way (+320°) inside [−170°, 170°]. Checked
+/// every cycle on its encoder, followed by continuity from the first reading.
+#[test]
+fn a_wheel_with_a_steering_range_turns_to_its_rest_angle_inside_the_range() {
+    let home = [-150f64.to_radians(), 0.0, 0.0, 0.0];
+    let rest = 160f64.to_radians();
+    let mut p = Platform::three_wheel();
+    p.protocol = Protocol::Cia402;
+    let mut c = p.cia402();
+    c.homing = drive_method(19);
+    for (w, h) in c.wheels.iter_mut().zip(home) {
+        w.steer_offset_rad = h;
+    }
+    c.wheels[0].rest_angle_rad = rest;
+    p.cia402 = Some(c);
+    p.validate().expect("valid platform");
+    let range = p.wheels[0].steering_range().expect("a range");
+    let mut opts = RunOptions::new(Scenario::Seed000).cia402();
+    opts.platform = Some(p);
+    opts.twin = twin(|i| SteerAxis {
+        switch_edge_rad: home[i],
+        ..SteerAxis::default()
+    });
+    let mut start = [0.0; MAX_WHEELS];
+    start[..4].copy_from_slice(&home.map(|h| h + 10f64.to_radians()));
+    opts.initial_steer = Some(start);
+    opts.max_seconds = Some(20.0);
+    let out = run(&opts);
+    let armed = armed_at(&out);
+    let mut phi: Option<f64> = None;
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for r in out.records.iter().take(armed) {
+        if r.feedback_age[0] != 0 && phi.is_none() {
+            continue;
+        }
+        let m = r.measurement.wheels[0].steer_angle;
+        let a = match phi {
+            None => range.first(m),
+            Some(p) => p + angle::diff(m, p),
+        };
+        phi = Some(a);
+        lo = lo.min(a);
+        hi = hi.max(a);
+        assert!(
+            a >= range.min - 1e-3 && a <= range.max + 1e-3,
+            "wheel 0 at {:.1}° at t = {:.3} s, outside [{:.0}°, {:.0}°]",
+            a.to_degrees(),
+            r.t,
+            range.min.to_degrees(),
+            range.max.to_degrees()
+        );
+    }
+    let at_arm = phi.expect("steering readings");
+    println!(
+        "wheel 0 swept [{:.1}°, {:.1}°], at {:.2}° when armed after {} ms",
+        lo.to_degrees(),
+        hi.to_degrees(),
+        at_arm.to_degrees(),
+        armed * 4
+    );
+    assert!(
+        (at_arm - rest).abs() < 0.01,
+        "armed with wheel 0 at {:.2}°, its rest angle is 160°",
+        at_arm.to_degrees()
+    );
+    assert!(lo < -145f64.to_radians(), "it was homed at −150°: {lo}");
+}

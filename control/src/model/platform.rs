@@ -986,6 +986,23 @@ impl Platform {
         c.homing
             .validate("cia402.homing", l.steer_rate, l.steer_accel)
             .map_err(|e| invalid(e.field, e.value, e.reason))?;
+        for (i, (w, pw)) in c.wheels.iter().zip(&self.wheels).enumerate() {
+            if let Some(r) = pw.steering_range() {
+                // The turn to the rest angle after homing stays inside the range only if
+                // the rest angle does.
+                if !(w.rest_angle_rad >= r.min && w.rest_angle_rad <= r.max) {
+                    return Err(invalid(
+                        format!("cia402.wheels[{i}].rest_angle_rad"),
+                        w.rest_angle_rad,
+                        format!(
+                            "must lie inside wheels[{i}].steer_range [{}, {}] rad: the wheel turns there after homing",
+                            Num(r.min),
+                            Num(r.max)
+                        ),
+                    ));
+                }
+            }
+        }
         for (i, w) in c.wheels.iter().enumerate() {
             if let Some(h) = w.homing {
                 h.validate(
@@ -1224,6 +1241,21 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
+    }
+
+    #[test]
+    fn a_rest_angle_outside_the_steering_range_is_refused() {
+        let mut p = Platform::three_wheel();
+        p.protocol = Protocol::Cia402;
+        let mut c = p.cia402();
+        c.wheels[1].rest_angle_rad = 175f64.to_radians();
+        p.cia402 = Some(c);
+        assert_eq!(err_field(&p), "cia402.wheels[1].rest_angle_rad");
+        let m = p.validate().unwrap_err().to_string();
+        assert!(
+            m.contains("steer_range") && m.contains("after homing"),
+            "{m}"
+        );
     }
 
     #[test]

@@ -156,6 +156,15 @@ impl Wiring {
         }
     }
 
+    /// The sign that turns wheel `wheel`'s steering motor reading into the joint's.
+    pub fn steer_sign(&self, wheel: usize) -> f64 {
+        if self.active {
+            self.steer.get(wheel).copied().unwrap_or(1.0)
+        } else {
+            1.0
+        }
+    }
+
     /// A motor reading as the joint's.
     pub fn to_joints(&mut self, u: Update) -> Update {
         if !self.active {
@@ -229,6 +238,12 @@ struct RestAlignment {
     since: Option<f64>,
     last: Command,
     angle: [Option<f64>; MAX_WHEELS],
+    /// The joint angle as the drive counts it since homing (not wrapped), for wheels with a
+    /// steering range: their turn to the rest angle is the plain difference, which stays
+    /// inside the range (module docs of [`crate::angle::SteerRange`]); the wrapped angle's
+    /// short way round could cross a stop.
+    turns: [Option<f64>; MAX_WHEELS],
+    ranges: [Option<angle::SteerRange>; MAX_WHEELS],
     rate: [f64; MAX_WHEELS],
     failure: Option<(usize, u8, Role, DeviceFault)>,
 }
@@ -268,7 +283,12 @@ impl RestAlignment {
                 there = false;
                 continue;
             };
-            let e = angle::diff(self.rest[i], phi);
+            // A wheel with a range turns the plain difference (inside the range, however
+            // long); an endless one the short way round.
+            let e = match (self.ranges[i], self.turns[i]) {
+                (Some(_), Some(turns)) => self.rest[i] - turns,
+                _ => angle::diff(self.rest[i], phi),
+            };
             // The speed from which the axis stops at the rest angle at 80 % of the
             // acceleration limit, capped at 80 % of the rate limit, and proportional near
             // the angle (REST_GAIN: a settling time well above the drives' lag and the
@@ -384,6 +404,10 @@ impl Link {
                 for (r, w) in rest.iter_mut().zip(&c.wheels) {
                     *r = w.rest_angle_rad;
                 }
+                let mut ranges = [None; MAX_WHEELS];
+                for (r, w) in ranges.iter_mut().zip(&p.wheels) {
+                    *r = w.steering_range();
+                }
                 Link::Cia402(Cia402Link {
                     master: Master::new(&c, p.dt()),
                     stats: RxStats::default(),
@@ -399,6 +423,8 @@ impl Link {
                         since: None,
                         last: Command::zero(n),
                         angle: [None; MAX_WHEELS],
+                        turns: [None; MAX_WHEELS],
+                        ranges,
                         rate: [0.0; MAX_WHEELS],
                         failure: None,
                     },
@@ -512,6 +538,9 @@ impl Link {
                                 seq,
                             } => {
                                 // The rest alignment works on the joints, as the controller.
+                                if let Some(x) = l.rest.turns.get_mut(wheel) {
+                                    *x = Some(l.wiring.steer_sign(wheel) * a);
+                                }
                                 let u = l.wiring.to_joints(Update::Steer {
                                     wheel,
                                     angle: angle::wrap(a),

@@ -413,7 +413,16 @@ pub fn markdown() -> String {
          the angle of the home position, measured once at commissioning. A homing that is not \
          done within `timeout_ms`, a homing error, an input never seen, a drive that faults while \
          homing or an axis that does not reach its rest angle within 15 s refuses the arm, \
-         naming the wheel, the node and what to check.\n\n",
+         naming the wheel, the node and what to check.\n\n\
+         A wheel with a `steer_range` (cable stops) must have its `rest_angle_rad` inside the \
+         range (`rollbase config check` refuses it otherwise), and its turn to the rest angle \
+         stays inside: it turns by the plain difference from the angle it was homed at, the \
+         long way round where the short one would cross a stop \
+         (`tests/tests/e2e_homing.rs`: homed at −150°, rest at +160°, ±170° stops: +310°). \
+         The search before it cannot be bounded by the host: until the axis is homed nobody \
+         knows where in its range it stands. Put the home switch where the search reaches it \
+         before any stop (at the end of the range the search runs toward), or use an \
+         absolute steering encoder.\n\n",
     );
 
     s.push_str("## Bring-up checklist (first power-on of real drives)\n\n");
