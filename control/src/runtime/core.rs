@@ -2016,20 +2016,27 @@ fn lag_compensation(
     for i in 0..cmd.n.min(p.n()).min(MAX_WHEELS) {
         let phi = meas.wheels[i].steer_angle;
         let [u, du, _] = crate::reference::limits::contact_kinematics(p, i, reference);
-        let (s, c) = phi.sin_cos();
-        let (along, across) = (u[0] * c + u[1] * s, -u[0] * s + u[1] * c);
-        let (dalong, dacross) = (du[0] * c + du[1] * s, -du[0] * s + du[1] * c);
-        let mut a = dalong / p.wheel_radius;
-        let sa = if p.wheels[i].off_centred() {
+        let (a, sa) = if p.wheels[i].off_centred() {
+            // The caster law (`caster_inverse`) and its derivative: projected on (h, h⊥),
+            // u̇ gives u̇·h and (u̇·h⊥)/d − θ̈; the turning of h adds the rest.
+            use crate::model::kinematics::caster_inverse;
             let d = p.wheels[i].caster_offset;
-            let rate = across / d - reference.dz[2];
-            // The rolling speed u·h turns with the wheel: d(u·h)/dt = u̇·h + φ̇ (u·h⊥).
-            a += rate * across / p.wheel_radius;
-            (dacross - rate * along) / d - reference.ddz[2]
-        } else if held[i] {
-            reference.steer.accel[i]
+            let (along, rate) = caster_inverse(u, phi, reference.dz[2], d);
+            let (dalong, drate) = caster_inverse(du, phi, reference.ddz[2], d);
+            let across = d * (rate + reference.dz[2]);
+            // d(u·h)/dt = u̇·h + φ̇ (u·h⊥); φ̈ = (u̇·h⊥ − φ̇ (u·h))/d − θ̈.
+            (
+                (dalong + rate * across) / p.wheel_radius,
+                drate - rate * along / d,
+            )
         } else {
-            crate::reference::limits::wheel_demand(p, i, reference).steer_accel
+            let a = (du[0] * phi.cos() + du[1] * phi.sin()) / p.wheel_radius;
+            let sa = if held[i] {
+                reference.steer.accel[i]
+            } else {
+                crate::reference::limits::wheel_demand(p, i, reference).steer_accel
+            };
+            (a, sa)
         };
         let w = &mut cmd.wheels[i];
         if a.is_finite() {
