@@ -906,73 +906,7 @@ pub fn run_realtime(
     stop: &AtomicBool,
     duration: Option<Duration>,
 ) -> Result<RealtimeSummary, SimError> {
-    let epoch = Instant::now() - sim.now();
-    let start = sim.now();
-    let mut summary = RealtimeSummary::default();
-    let mut clock = ClockMap::new();
-    clock.empty_at(start);
-    loop {
-        let now = epoch.elapsed();
-        summary.elapsed = now - start;
-        if stop.load(Ordering::Relaxed) || duration.is_some_and(|d| now - start >= d) {
-            break;
-        }
-        let mut next = sim.next_step_time();
-        if let Some(t) = sim.next_tx_time() {
-            next = next.min(t);
-        }
-        if let Some(d) = duration {
-            next = next.min(start + d);
-        }
-        // The first frame may be waited for; then everything already queued.
-        let mut got = bus.recv_until(epoch + next);
-        let mut applied = 0usize;
-        let mut last = sim.now();
-        let polled = loop {
-            match got {
-                Ok(Some(tf)) => {
-                    let read = epoch.elapsed();
-                    let at = clock.arrival(tf.timestamp, read).max(sim.now());
-                    summary.frames_in += 1;
-                    summary.max_receive_lag = summary.max_receive_lag.max(read.saturating_sub(at));
-                    sim.on_frame(at, &tf.frame);
-                    last = at;
-                    applied += 1;
-                    if applied >= MAX_FRAMES_PER_WAKEUP {
-                        break None;
-                    }
-                }
-                Ok(None) => {
-                    let empty = epoch.elapsed();
-                    clock.empty_at(empty);
-                    break Some(empty);
-                }
-                Err(e) if e.is_retryable() => {
-                    summary.recv_errors += 1;
-                    break Some(epoch.elapsed());
-                }
-                Err(e) => return Err(e.into()),
-            }
-            got = bus.try_recv();
-        };
-        // Advance to the moment the queue was seen empty (nothing can have arrived unseen
-        // before it), or, with frames still queued, only to the last frame applied.
-        let now = polled.unwrap_or(last).max(sim.now());
-        sim.advance_to(now);
-        let mut err = None;
-        sim.drain_due(now, &mut |at, f| {
-            summary.max_send_lateness = summary.max_send_lateness.max(now.saturating_sub(at));
-            match bus.send(&f) {
-                Ok(()) => summary.frames_out += 1,
-                Err(e) if e.is_retryable() => summary.send_errors += 1,
-                Err(e) => err = Some(e),
-            }
-        });
-        if let Some(e) = err {
-            return Err(e.into());
-        }
-    }
-    Ok(summary)
+    run_realtime_buses(sim, &mut [bus], stop, duration)
 }
 
 /// How long [`run_realtime_buses`] waits on bus 0 before it looks at the other buses (a
@@ -983,10 +917,12 @@ pub const MULTI_BUS_POLL: Duration = Duration::from_micros(200);
 
 /// [`run_realtime`] on one bus per bus of the platform: `buses[b]` carries the devices of the
 /// wheels with `bus = b` (their frames go out on it, and a frame received on it reaches only
-/// them, [`Simulator::on_frame_on`]). One bus is exactly [`run_realtime`]. With several, each
-/// wake-up waits on bus 0 at most [`MULTI_BUS_POLL`], then reads every bus (each with its own
-/// [`ClockMap`]), applies the frames in arrival order and advances to the earliest moment a
-/// bus was seen empty. A device whose bus index is beyond `buses` sends on the last bus.
+/// them, [`Simulator::on_frame_on`]). With one bus (what [`run_realtime`] runs), a wake-up
+/// waits on it until the next step or due frame, and every device sees every frame. With
+/// several, each wake-up waits on bus 0 at most [`MULTI_BUS_POLL`], then reads every bus (each
+/// with its own [`ClockMap`]), applies the frames in arrival order and advances to the
+/// earliest moment a bus was seen empty. A device whose bus index is beyond `buses` sends on
+/// the last bus.
 pub fn run_realtime_buses(
     sim: &mut Simulator,
     buses: &mut [&mut dyn CanBus],
@@ -995,9 +931,6 @@ pub fn run_realtime_buses(
 ) -> Result<RealtimeSummary, SimError> {
     if buses.is_empty() {
         return Err(invalid("buses", 0, "the simulator needs at least one bus"));
-    }
-    if buses.len() == 1 {
-        return run_realtime(sim, &mut *buses[0], stop, duration);
     }
     let nb = buses.len();
     let epoch = Instant::now() - sim.now();
@@ -1023,7 +956,9 @@ pub fn run_realtime_buses(
         if let Some(d) = duration {
             next = next.min(start + d);
         }
-        next = next.min(now + MULTI_BUS_POLL);
+        if nb > 1 {
+            next = next.min(now + MULTI_BUS_POLL);
+        }
         got.clear();
         // The moment every bus had been seen empty (nothing unseen arrived before it), or
         // None when a bus still holds frames (then advance only to the last frame applied).
@@ -1072,7 +1007,11 @@ pub fn run_realtime_buses(
         let mut last = sim.now();
         for &(at, b, f) in &got {
             let at = at.max(sim.now());
-            sim.on_frame_on(b, at, &f);
+            if nb > 1 {
+                sim.on_frame_on(b, at, &f);
+            } else {
+                sim.on_frame(at, &f);
+            }
             last = at;
         }
         let now = if full {
