@@ -138,6 +138,22 @@ def contact_velocity(p, i, vx, vy, w, lam, lam_rate=0.0):
             vy + w * lam * math.cos(a) + lam_rate * math.sin(a))
 
 
+# A wheel counts as steered along a direction within this angle (rad): the shaper's alignment
+# tolerance (1.5°) plus the steering drive's lag and the encoder's noise.
+STEER_TOL = 0.035
+
+
+def steering_along(p, js, cmd) -> bool:
+    """Every wheel's measured steering angle (joint_states: steer, drive, leg per wheel) points
+    along (either way) its contact velocity under `cmd` at the nominal legs."""
+    for i, wh in enumerate(p["wheels"]):
+        u = contact_velocity(p, i, *cmd, wh["lambda_nominal"])
+        e = abs(math.remainder(js.position[3 * i] - math.atan2(u[1], u[0]), math.pi))
+        if e > STEER_TOL:
+            return False
+    return True
+
+
 def fastest_contact(p, cmd, legs=None):
     legs = legs or [wh["lambda_nominal"] for wh in p["wheels"]]
     return max(math.hypot(*contact_velocity(p, i, *cmd, legs[i])) for i in range(len(p["wheels"])))
@@ -486,22 +502,29 @@ def test_moves_as_commanded_and_tf_and_joint_states_agree(live):
     t0 = peer.now()
     peer.drive(*CMD)
     t_ramp = ramp_time(p, CMD)
-    # Alignment (steering in place) comes first; it cannot take longer than a half turn at
-    # the steering limits (well under 1 s); then the ramp, then SETTLE, then 2 s of cruise.
-    # While the wheels align the base may already creep: a turning wheel rolls as fast as its
-    # misalignment allows, below HOLD_SPEED (control/src/reference/shaper.rs, "Where a wheel
-    # does not roll"). The ramp has begun once the base is faster than that creep.
+    # The wheels first turn to the command's directions; that cannot take longer than a half
+    # turn at the steering limits (well under 1 s). From rest with the wheels all pointing
+    # along one twist (here: straight ahead) the base already rolls while they turn, along
+    # the turning direction and slower than the command (control/src/reference/shaper.rs,
+    # "Starting along the wheels"); otherwise it creeps below HOLD_SPEED while they align.
+    # Once every wheel points along the command, what is left of the speed change takes at
+    # most one ramp from rest (t_ramp); then SETTLE, then 2 s of cruise.
     start = peer.wait("odom", lambda o: speed(o) > ALIGN_CREEP, t0=t0, timeout=5, what="moving")
     t_on = stamp(start)
-    peer.wait("odom", lambda o: stamp(o) > t_on + t_ramp + SETTLE + 2.0, t0=t0, timeout=10)
+    aimed = peer.wait("joint_states", lambda js: steering_along(p, js, CMD), t0=t0, timeout=5,
+                      what="with every wheel steered along the command")
+    t_al = max(t_on, stamp(aimed))
+    peer.wait("odom", lambda o: stamp(o) > t_al + t_ramp + SETTLE + 2.0, t0=t0, timeout=10)
     odoms = peer.since("odom", t0)
     tfs = peer.since("tf", t0)
     joints = peer.since("joint_states", t0)
     states = peer.since("supervisor_state", t0)
+    print(f"wheels along the command {t_al - t_on:.3f} s after the base began to roll")
 
-    # 1. Once the ramp (computed from the limits: t_ramp) is over, the base reaches the
-    # command; after SETTLE more it holds it within VEL_TOL.
-    ramp_end = t_on + t_ramp
+    # 1. Once the wheels point along the command and a ramp (computed from the limits:
+    # t_ramp) is over, the base reaches the command; after SETTLE more it holds it within
+    # VEL_TOL.
+    ramp_end = t_al + t_ramp
     reached = [o for o in odoms if stamp(o) >= ramp_end + 0.05]
     assert reached, "no odometry after the ramp"
     cruise = [o for o in odoms if stamp(o) >= ramp_end + SETTLE]
@@ -514,8 +537,9 @@ def test_moves_as_commanded_and_tf_and_joint_states_agree(live):
     # (the drives' 20 ms lag is compensated, the DFL correction is a few mm/s).
     first = reached[0]
     assert all(abs(twist3(first)[k] - CMD[k]) <= 0.1 * abs(CMD[k]) for k in range(3)), twist3(first)
-    # The ramp did not finish early: around its middle the speed is still well below the
-    # command (the acceleration is limited; a step would be there at once).
+    # The speed change is limited: 0.3–0.6 ramps after the base began to roll the speed is
+    # still well below the command (the acceleration is limited; a step would be there at
+    # once).
     mid = [o for o in odoms if t_on + 0.3 * t_ramp <= stamp(o) <= t_on + 0.6 * t_ramp]
     assert mid and all(twist3(o)[0] < 0.9 * CMD[0] for o in mid), [twist3(o) for o in mid]
     assert all(m.data.split()[0] == "tracking" for m in states), [m.data for m in states]

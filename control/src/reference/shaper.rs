@@ -1418,15 +1418,16 @@ impl Shaper {
             return 1.0;
         }
         // Standing, a goal inside the noise band moves nothing (`goal_differs`): nor does
-        // it turn the wheels.
+        // it turn the wheels, unless the legs are about to move them.
+        let legs = self.leg_velocity_ahead(g);
         if matches!(self.phase, Phase::Cruise)
             && self.qd[..3].iter().all(|v| *v == 0.0)
             && self.wheel_norm(g) <= self.band
+            && legs[..self.n].iter().all(|v| *v == 0.0)
         {
             return 1.0;
         }
         let mut k = 1.0f64;
-        let legs = self.leg_velocity_ahead(g);
         for i in 0..self.n {
             if self.rolling[i] {
                 continue;
@@ -3130,6 +3131,69 @@ mod tests {
         }
         let q = s.velocity();
         assert!((q[0] - 0.4 * goal.cos()).abs() < 1e-9 && (q[1] - 0.4 * goal.sin()).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_start_stopped_at_any_moment_comes_to_rest_and_lets_the_legs_move() {
+        // A start along the wheels cut short by a let-go (rest as the goal) or by a halt (a
+        // timeout, a stop request), at any moment of its turn, ends at rest within the stop's
+        // own time, and a leg command afterwards moves the legs (a leg move starts only
+        // after the start: a start that never ends holds the legs for good).
+        for deg in [30.0f64, 60.0, 120.0, 170.0] {
+            for cut in [1usize, 3, 8, 20, 45, 90, 150] {
+                for halt in [false, true] {
+                    let (p, mut s) = shaper();
+                    let mut last: Option<ReferenceSample> = None;
+                    let mut k = 0usize;
+                    // One cycle; a stream sends its command every 20 ms (as a joystick).
+                    let mut step = |s: &mut Shaper, cmd: Option<(Twist, Option<&[f64]>)>| {
+                        if let (Some((t, legs)), 0) = (cmd, k % 5) {
+                            s.command(t, legs);
+                        }
+                        k += 1;
+                        let r = s.step();
+                        check(&p, &r, last.as_ref());
+                        last = Some(r);
+                    };
+                    (0..400).for_each(|_| step(&mut s, Some((tw(0.4, 0.0, 0.0), None))));
+                    (0..400).for_each(|_| step(&mut s, Some((tw(0.0, 0.0, 0.0), None))));
+                    assert!(s.at_rest());
+                    let g = deg.to_radians();
+                    let mut started = false;
+                    for _ in 0..cut {
+                        step(&mut s, Some((tw(0.4 * g.cos(), 0.4 * g.sin(), 0.0), None)));
+                        started |= matches!(s.phase, Phase::Start { .. });
+                    }
+                    assert!(started, "{deg}° cut after {cut}: no start along the wheels");
+                    // A let-go streams rest; a halt (a timeout, a stop request) is followed
+                    // by no command.
+                    if halt {
+                        s.halt();
+                    }
+                    let rest = (!halt).then_some((tw(0.0, 0.0, 0.0), None));
+                    let stopped = (0..500).position(|_| {
+                        step(&mut s, rest);
+                        s.at_rest()
+                    });
+                    assert!(
+                        stopped.is_some(),
+                        "{deg}° cut after {cut} (halt {halt}): not at rest 2 s after the stop, \
+                         phase {:?}",
+                        s.phase
+                    );
+                    let targets = [0.485, 0.445, 0.485, 0.445];
+                    let legs = Some((tw(0.0, 0.0, 0.0), Some(&targets[..])));
+                    (0..1000).for_each(|_| step(&mut s, legs));
+                    for i in 0..4 {
+                        assert!(
+                            (s.legs()[i] - targets[i]).abs() < 1e-9,
+                            "{deg}° cut after {cut} (halt {halt}): leg {i} at {}",
+                            s.legs()[i]
+                        );
+                    }
+                }
+            }
+        }
     }
 
     #[test]
