@@ -1144,20 +1144,37 @@ pub fn truth_path_length(records: &[CycleRecord]) -> f64 {
 /// Steering rate (rad/s) a reversal must exceed on both sides.
 pub const REVERSAL_RATE: f64 = 0.2;
 
-/// Steering reversals of wheel `wheel` over the records: sign changes of its **commanded**
-/// steering rate (`record.command.wheels[wheel].steer_rate`) counted with a hysteresis of
-/// ±[`REVERSAL_RATE`]: a reversal is the rate above +0.2 rad/s and later below −0.2 rad/s, or
-/// the other way round (rates in between do not reset the last sign).
+/// Steering reversals of wheel `wheel` over the records: sign changes of its **measured**
+/// steering rate (`record.measurement.wheels[wheel].steer_rate`, what the wheel does) counted
+/// with a hysteresis of ±[`REVERSAL_RATE`]: a reversal is the rate above +0.2 rad/s and later
+/// below −0.2 rad/s, or the other way round (rates in between do not reset the last sign).
 ///
-/// The commanded rate, not the measured one: it is what the controller decides (a re-plan,
-/// an alignment, the feedback's corrections), it is free of the encoders' noise and
-/// quantisation, and it is what the limit check sees; the measured rate follows it a cycle
-/// or two later through the drive's lag, and would count the same reversals plus the noise's.
+/// The measured rate, not the commanded one ([`setpoint_reversals`]): the steering setpoint
+/// carries the drives' lag compensation, φ̇* + τ φ̈* (τ = 15 ms; `lag_compensation` in
+/// control/src/runtime/core.rs), which dips below zero at the end of every turn braked faster
+/// than 0.2 rad/s / τ ≈ 13 rad/s² although the drive, a first-order lag, only comes to rest
+/// and the wheel never turns back. On the σ = 0.02 m/s joystick session the setpoints
+/// changed sign 16–23 times per wheel, the wheels 13–19 times, the reference 11–19 times.
+/// The encoders' noise and quantisation (about 1e-3 rad/s) are far below the hysteresis.
 pub fn steering_reversals(records: &[CycleRecord], wheel: usize) -> usize {
+    sign_changes(
+        records
+            .iter()
+            .map(|r| r.measurement.wheels[wheel].steer_rate),
+    )
+}
+
+/// [`steering_reversals`]'s count on the commanded steering rate (the setpoint sent, lag
+/// compensation included): reported beside it.
+pub fn setpoint_reversals(records: &[CycleRecord], wheel: usize) -> usize {
+    sign_changes(records.iter().map(|r| r.command.wheels[wheel].steer_rate))
+}
+
+/// Sign changes of a rate beyond ±[`REVERSAL_RATE`] (see [`steering_reversals`]).
+fn sign_changes(rates: impl Iterator<Item = f64>) -> usize {
     let mut last = 0.0f64;
     let mut count = 0;
-    for r in records {
-        let rate = r.command.wheels[wheel].steer_rate;
+    for rate in rates {
         let sign = if rate > REVERSAL_RATE {
             1.0
         } else if rate < -REVERSAL_RATE {
@@ -1457,6 +1474,8 @@ pub struct LiveFigures {
     pub reference_path_m: f64,
     /// [`steering_reversals`] per wheel.
     pub reversals: [usize; 4],
+    /// [`setpoint_reversals`] per wheel (reported, not bounded).
+    pub setpoint_reversals: [usize; 4],
     /// [`command_reversals`] of the session's noise-free commands per wheel: what the command
     /// asks for by itself.
     pub command_reversals: [usize; 4],
@@ -1484,8 +1503,10 @@ impl LiveFigures {
         command_reversals: [usize; 4],
     ) -> Self {
         let mut reversals = [0; 4];
-        for (i, r) in reversals.iter_mut().enumerate() {
-            *r = steering_reversals(&out.records, i);
+        let mut setpoint = [0; 4];
+        for i in 0..4 {
+            reversals[i] = steering_reversals(&out.records, i);
+            setpoint[i] = setpoint_reversals(&out.records, i);
         }
         let s = &out.summary;
         Self {
@@ -1493,6 +1514,7 @@ impl LiveFigures {
             truth_path_m: truth_path_length(&out.records),
             reference_path_m,
             reversals,
+            setpoint_reversals: setpoint,
             command_reversals,
             aligning_standing: aligning_standing_fraction(&out.records),
             violations: limit_violations(&out.records, &out.platform),
@@ -1577,12 +1599,13 @@ impl fmt::Display for LiveFigures {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
             f,
-            "session {:.1} s: path {:.2} m of {:.2} m ({:.1} %), reversals {:?} (the command's own {:?}; issue 23 allows {} beyond), aligning standing {:.1} %, {}, errors {:.2} mm {:.3}° legs {:.2} mm, limit violations: {}",
+            "session {:.1} s: path {:.2} m of {:.2} m ({:.1} %), reversals {:?} (setpoints {:?}; the command's own {:?}; issue 23 allows {} beyond), aligning standing {:.1} %, {}, errors {:.2} mm {:.3}° legs {:.2} mm, limit violations: {}",
             self.session_s,
             self.truth_path_m,
             self.reference_path_m,
             100.0 * self.path_ratio(),
             self.reversals,
+            self.setpoint_reversals,
             self.command_reversals,
             LiveBounds::ISSUE.allowed_reversals(self.session_s),
             100.0 * self.aligning_standing,
@@ -1899,8 +1922,25 @@ mod tests {
     fn with_steer(k: u64, wheel: usize, rate: f64) -> CycleRecord {
         let mut r = rec(k);
         r.command = Command::zero(4);
-        r.command.wheels[wheel].steer_rate = rate;
+        r.measurement.wheels[wheel].steer_rate = rate;
         r
+    }
+
+    #[test]
+    fn reversals_are_the_wheels_measured_ones_and_the_setpoints_are_counted_apart() {
+        // The setpoint dips below −0.2 rad/s at the end of each turn (the lag compensation's
+        // φ̈ term) while the measured rate only comes to rest: the wheel never turned back.
+        let turn = [0.0, 0.5, 1.0, 0.5, -0.3, 0.0];
+        let wheel = [0.0, 0.3, 0.8, 0.7, 0.1, 0.0];
+        let recs: Vec<_> = (0..3 * turn.len())
+            .map(|k| {
+                let mut r = with_steer(k as u64, 1, wheel[k % turn.len()]);
+                r.command.wheels[1].steer_rate = turn[k % turn.len()];
+                r
+            })
+            .collect();
+        assert_eq!(steering_reversals(&recs, 1), 0);
+        assert_eq!(setpoint_reversals(&recs, 1), 5);
     }
 
     #[test]
