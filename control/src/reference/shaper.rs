@@ -1861,12 +1861,6 @@ impl Shaper {
     /// platform first.
     fn plan_next(&mut self, goal: &[f64; 3]) {
         let from = [self.qd[0], self.qd[1], self.qd[2]];
-        if from.iter().all(|v| *v == 0.0) {
-            if let Some(start) = self.plan_start(goal) {
-                self.phase = start;
-                return;
-            }
-        }
         let delta = [goal[0] - from[0], goal[1] - from[1], goal[2] - from[2]];
         let mut far = false;
         for i in 0..self.n {
@@ -2607,6 +2601,8 @@ impl Shaper {
         self.step_legs(&g);
         // From rest, a start along the wheels begins with the goal itself, before any wheel
         // is aimed at it (a goal capped by turning wheels may stay inside the noise band).
+        // This is the one place a start is planned: from rest the transitions below would
+        // ask the same question of the same wheels.
         if matches!(self.phase, Phase::Cruise)
             && self.qd[..3].iter().all(|v| *v == 0.0)
             && self.wheel_norm(&g) > self.band
