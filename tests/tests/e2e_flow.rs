@@ -58,11 +58,16 @@ const JOYSTICK_SEED: u64 = 23;
 /// σ = 0.05, not yet at σ = 0.02). Since the reversals are counted on the wheels' measured
 /// steering rates rather than on the setpoints, whose lag compensation dips below zero at the
 /// end of every fast turn ([`steering_reversals`]): up to 14 beyond the command's own (wheel
-/// 2 at σ = 0.02; within the issue's 10 at σ = 0 and σ = 0.05).
+/// 2 at σ = 0.02; within the issue's 10 at σ = 0 and σ = 0.05). Since the start's speed takes
+/// what the turn leaves of the acceleration share, transitions may go through an
+/// intermediate twist, a noisy goal's direction is kept while only its speed changes, and a
+/// goal capped to a crawl is rest: 68.6 % (both profiles), at most 8 reversals beyond the
+/// command's own, 7.7–9.7 % aligning standing. Every bound of the issue but the noise-free
+/// path is met on this session, so those are asserted at the issue's level.
 const JOYSTICK_ACHIEVED: LiveBounds = LiveBounds {
-    path_share: 0.55,
-    reversals_per_2s: 1.5,
-    aligning_standing: 0.14,
+    path_share: 0.68,
+    reversals_per_2s: LiveBounds::ISSUE.reversals_per_2s,
+    aligning_standing: LiveBounds::ISSUE.aligning_standing,
 };
 /// The same for the Nav2-like sessions: every goal is reached and the path is within the
 /// issue's bound; the steering reverses up to 2.1 times per wheel per 2 s beyond the

@@ -122,6 +122,15 @@ impl Ramp {
         r
     }
 
+    /// The planned velocity at the `j`-th grid point (0 past the last).
+    pub fn planned_velocity(&self, j: usize) -> f64 {
+        if j < self.k {
+            self.v[j]
+        } else {
+            0.0
+        }
+    }
+
     /// Duration of the planned profile (s).
     pub fn duration(&self) -> f64 {
         if self.k < 2 {
