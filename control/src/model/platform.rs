@@ -31,7 +31,9 @@ pub const MIN_CYCLE_HZ: f64 = (TOLERATED_LOST_CYCLES + 1) as f64 / SETPOINT_WATC
 
 /// Time a cycle needs after its feedback window for the control step, the SETPOINTs' send and
 /// the thread's wake-up latency (s): 1 ms, about 8 times the largest measured compute time
-/// (119 µs, docs/performance.md) plus the wake-up latency.
+/// of a trajectory run's cycle (119 µs) and 6 times a live one's (161 µs, a cycle whose
+/// shaper plans a transition through an intermediate twist), docs/performance.md, plus the
+/// wake-up latency.
 pub const CYCLE_COMPUTE_BUDGET_S: f64 = 0.001;
 
 /// Highest control rate (Hz): a cycle waits [`DEFAULT_FEEDBACK_WINDOW_S`] (2 ms) for the

@@ -138,19 +138,24 @@
 //! differ in sign (a stick swung from a left turn to a right one) the ICR crosses the
 //! platform, and a wheel it passes near turns by nearly 180° while slow, which the line
 //! crawls through within that wheel's steering acceleration. So, for a transition between
-//! moving twists with every wheel rolling, six intermediate twists are tried — the
-//! translations of either end and of their mean (no rotation: the ICR at infinity, every
-//! wheel rolling at the translation's speed), either end's translation with the other's
-//! rotation, and the mean twist — each at least 5 cm/s at the fastest wheel (slower is
-//! nearly a stop, which the comparison above weighs) and within the wheel-speed cap. The
+//! moving twists with every wheel rolling whose straight line is bound by a steering limit,
+//! five intermediate twists are tried — the translations of either end and of their mean
+//! (no rotation: the ICR at infinity, every wheel rolling at the translation's speed), the
+//! present translation with the goal's rotation, and the mean twist — each at least 5 cm/s
+//! at the fastest wheel (slower is nearly a stop, which the comparison above weighs) and
+//! within the wheel-speed cap. (The goal's translation with the present rotation, tried
+//! too, never changed a session's figures; without the present translation with the goal's
+//! rotation the noise-free sessions lost 1 point of path.) The
 //! one whose two lines take least time together is taken where that is less than 90 %
 //! (`VIA_GAIN`) of the direct line's; the line to it runs to its end whatever the goal
 //! does (rest still brakes it), and the next transition is planned from there. Both lines
 //! are planned with half the lateral acceleration (`VIA_LATERAL_SHARE`): two sweeps at
 //! speed one after the other at the full 2 m/s² left the base 5.1 mm off its reference
 //! (closed loop, seed 7, σ = 0.02 m/s, `tests/tests/flow_sessions.rs`), the drives'
-//! steering lag adding up over both; at half, 3.9 mm, and no session lost path by it. Each
-//! planning then plans up to thirteen lines (allocation-free, once per transition). Over
+//! steering lag adding up over both; at half, 4.8 mm, and no session lost path by it (the
+//! 5 mm bound is close there: the closed loop of the base is the weaker part). Such a
+//! planning plans up to eleven lines (allocation-free, once per transition): the costliest
+//! live step in `docs/performance.md`, up to 0.2 ms of the 4 ms cycle. Over
 //! the eight joystick sessions of `tests/tests/shaper_streams.rs` this added 1.0 / 4.1 /
 //! 2.7 points of mean path at σ = 0 / 0.02 / 0.05 m/s, and 3 of the 16 noisy closed-loop
 //! sessions of `tests/tests/flow_sessions.rs` meet every bound of issue 23 with it that do
@@ -2026,7 +2031,11 @@ impl Shaper {
             };
             return;
         }
-        if let Some(m) = self.via_twist(&from, goal, ramp.duration()) {
+        let steering_bound = matches!(limit, Limiting::SteerAccel | Limiting::SteerRate);
+        if let Some(m) = steering_bound
+            .then(|| self.via_twist(&from, goal, ramp.duration()))
+            .flatten()
+        {
             let (ramp, limit, crosses) =
                 self.plan_line_lat(&from, &m, VIA_LATERAL_SHARE * self.cfg.lateral_accel);
             self.phase = Phase::Line {
@@ -2213,8 +2222,8 @@ impl Shaper {
     }
 
     /// The intermediate twist a transition from `from` to `goal` goes through, if any (module
-    /// docs, "Through an intermediate twist"): of a few candidates (the translations of
-    /// either end and of their mean, either end's translation with the other's rotation, the
+    /// docs, "Through an intermediate twist"): of five candidates (the translations of
+    /// either end and of their mean, the present translation with the goal's rotation, the
     /// mean twist), the one whose two lines take least time together, where that is less
     /// than [`VIA_GAIN`] times the direct line's `direct` duration.
     fn via_twist(&self, from: &[f64; 3], goal: &[f64; 3], direct: f64) -> Option<[f64; 3]> {
@@ -2233,7 +2242,6 @@ impl Shaper {
             [goal[0], goal[1], 0.0],
             [mid(from[0], goal[0]), mid(from[1], goal[1]), 0.0],
             [from[0], from[1], goal[2]],
-            [goal[0], goal[1], from[2]],
             [
                 mid(from[0], goal[0]),
                 mid(from[1], goal[1]),
@@ -2243,7 +2251,7 @@ impl Shaper {
         let mut best: Option<([f64; 3], f64)> = None;
         for m in candidates {
             let w = self.wheel_norm(&m);
-            if !(VIA_MIN_SPEED..=vmax).contains(&w) {
+            if !(VIA_MIN_SPEED..=vmax).contains(&w) || m == *from || m == *goal {
                 continue;
             }
             let d = self
