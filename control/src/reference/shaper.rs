@@ -658,8 +658,9 @@ enum Phase {
         v: f64,
         vd: f64,
         vmax: f64,
-        /// Per turn grid point j (s = j/`TURN_POINTS − 1`), the largest |G_i d̂'| ṡ from
-        /// there to the turn's end: the speed at s_j is at most `lateral`/`ahead[j]`.
+        /// Per turn grid point j (s = j/`TURN_POINTS − 1`), the largest planned |G_i d̂'| ṡ
+        /// from there to the turn's end: past s_j the speed is at most
+        /// max(`vmax`, a_l/`ahead[j]`) (module docs, "Starting along the wheels").
         ahead: [f64; TURN_POINTS],
         /// The ramp's last `window` samples (s, ṡ, s̈), averaged into the turn so that the
         /// steering acceleration builds up within the jerk the drives' lag compensation needs.
@@ -3329,27 +3330,14 @@ mod tests {
     #[test]
     fn from_rest_a_turn_along_the_wheels_rolls_while_they_turn() {
         let (p, mut s) = shaper();
-        // A stream (a command every 20 ms, as from a joystick) for `cycles` cycles.
-        let stream = |s: &mut Shaper, t: Twist, cycles: usize| {
-            let mut out: Vec<ReferenceSample> = Vec::new();
-            for k in 0..cycles {
-                if k % 5 == 0 {
-                    s.command(t, None);
-                }
-                let r = s.step();
-                check(&p, &r, out.last());
-                out.push(r);
-            }
-            out
-        };
         // Drive along x, let go: the wheels stand pointing along x.
-        stream(&mut s, tw(0.4, 0.0, 0.0), 400);
-        stream(&mut s, tw(0.0, 0.0, 0.0), 400);
+        stream(&p, &mut s, tw(0.4, 0.0, 0.0), 400);
+        stream(&p, &mut s, tw(0.0, 0.0, 0.0), 400);
         assert!(s.at_rest());
         // 60° to the left: the platform rolls within 0.1 s, its wheels still far from the
         // new direction, never away from the goal, and never slides.
         let goal = 60f64.to_radians();
-        let samples = stream(&mut s, tw(0.4 * goal.cos(), 0.4 * goal.sin(), 0.0), 500);
+        let samples = stream(&p, &mut s, tw(0.4 * goal.cos(), 0.4 * goal.sin(), 0.0), 500);
         let rolled = samples
             .iter()
             .find(|r| r.dz[0].hypot(r.dz[1]) > HOLD_SPEED)
@@ -3547,17 +3535,7 @@ mod tests {
         // The wheels follow the mean: few steering reversals (sign changes of the steering
         // rate beyond 0.2 rad/s) once rolling.
         for i in 0..4 {
-            let mut sign = 0.0f64;
-            let mut reversals = 0;
-            for r in &samples[500..] {
-                let v = r.steer.rate[i];
-                if v.abs() > 0.2 {
-                    if sign != 0.0 && v.signum() != sign {
-                        reversals += 1;
-                    }
-                    sign = v.signum();
-                }
-            }
+            let reversals = steering_reversals(samples[500..].iter(), i);
             assert!(
                 reversals <= 4,
                 "wheel {i}: {reversals} steering reversals in 8 s"
@@ -3749,6 +3727,24 @@ mod tests {
         assert!((v[0] - want.vx).abs() < 1e-12 && (v[1] - want.vy).abs() < 1e-12);
     }
 
+    /// Sign changes of wheel `i`'s steering rate beyond ±0.2 rad/s over `samples`.
+    fn steering_reversals<'a>(
+        samples: impl Iterator<Item = &'a ReferenceSample>,
+        i: usize,
+    ) -> usize {
+        let (mut sign, mut reversals) = (0.0f64, 0);
+        for r in samples {
+            let v = r.steer.rate[i];
+            if v.abs() > 0.2 {
+                if sign != 0.0 && v.signum() != sign {
+                    reversals += 1;
+                }
+                sign = v.signum();
+            }
+        }
+        reversals
+    }
+
     /// Streams `t` (a command every 20 ms, as a joystick) for `cycles` cycles, every sample
     /// checked against the limits.
     fn stream(p: &Platform, s: &mut Shaper, t: Twist, cycles: usize) -> Vec<ReferenceSample> {
@@ -3838,67 +3834,42 @@ mod tests {
     #[test]
     fn a_released_noisy_stick_slows_the_platform_without_steering_reversals() {
         // Driving forward at 0.6 m/s with noise σ = 0.04 m/s on every message, the stick
-        // is released over a second. While the platform slows from 0.5 to 0.2 m/s (where the
-        // band is within 10° of the direction) the wheels' steering rates change sign beyond
-        // ±0.2 rad/s at most twice in all (once on two wheels); following every noisy
-        // direction on the way down, twice on every wheel (8).
-        let (p, mut s) = shaper();
-        // A deterministic generator (xorshift64*) and Box–Muller.
-        let mut x: u64 = 0x9E37_79B9_7F4A_7C15;
-        let mut uniform = move || {
-            x ^= x >> 12;
-            x ^= x << 25;
-            x ^= x >> 27;
-            (x.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 11) as f64 / (1u64 << 53) as f64
-        };
-        let mut gauss = move || {
-            let (u1, u2) = (uniform().max(1e-12), uniform());
-            (-2.0 * u1.ln()).sqrt() * (2.0 * PI * u2).cos()
-        };
-        let mut out: Vec<ReferenceSample> = Vec::new();
-        let cycles = 1500;
-        for k in 0..cycles {
-            let t = k as f64 * p.dt();
-            let v = if t < 3.0 {
-                0.6
-            } else {
-                (0.6 * (4.0 - t)).max(0.0)
-            };
-            if k % 5 == 0 {
-                s.command(tw(v + 0.04 * gauss(), 0.04 * gauss(), 0.08 * gauss()), None);
-            }
-            let r = s.step();
-            check(&p, &r, out.last());
-            out.push(r);
-        }
-        assert!(s.band > 0.0, "the noise was estimated");
+        // is released over a second; eight noise sequences. While the platform slows from
+        // 0.5 to 0.2 m/s (where the band is within 10° of the direction) the wheels'
+        // steering rates change sign beyond ±0.2 rad/s at most once per release on average
+        // (6 times in all when this was written, the direction kept within the noise);
+        // following every noisy direction on the way down, 58 times.
         let mut total = 0;
-        for i in 0..4 {
-            let mut sign = 0.0f64;
-            let mut reversals = 0;
-            for r in &out {
-                let speed = r.dz[0].hypot(r.dz[1]);
-                if r.t < 3.0 || !(0.2..=0.5).contains(&speed) {
-                    continue;
-                }
-                let rate = r.steer.rate[i];
-                let sg = if rate > 0.2 {
-                    1.0
-                } else if rate < -0.2 {
-                    -1.0
+        for seed in 1..=8u64 {
+            let (p, mut s) = shaper();
+            let mut rng = rollbase_driver::rng::Rng::new(seed);
+            let mut out: Vec<ReferenceSample> = Vec::new();
+            for k in 0..1500 {
+                let t = k as f64 * p.dt();
+                let v = if t < 3.0 {
+                    0.6
                 } else {
-                    continue;
+                    (0.6 * (4.0 - t)).max(0.0)
                 };
-                if sign != 0.0 && sg != sign {
-                    reversals += 1;
+                if k % 5 == 0 {
+                    let (nx, ny, nw) = (rng.gaussian(), rng.gaussian(), rng.gaussian());
+                    s.command(tw(v + 0.04 * nx, 0.04 * ny, 0.08 * nw), None);
                 }
-                sign = sg;
+                let r = s.step();
+                check(&p, &r, out.last());
+                out.push(r);
             }
-            total += reversals;
+            assert!(s.band > 0.0, "the noise was estimated");
+            let slowing =
+                |r: &&ReferenceSample| r.t >= 3.0 && (0.2..=0.5).contains(&r.dz[0].hypot(r.dz[1]));
+            let n: usize = (0..4)
+                .map(|i| steering_reversals(out.iter().filter(slowing), i))
+                .sum();
+            total += n;
         }
         assert!(
-            total <= 2,
-            "the wheels reversed their steering {total} times while the platform slowed"
+            total <= 8,
+            "the wheels reversed their steering {total} times in 8 releases"
         );
     }
 
