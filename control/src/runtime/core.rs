@@ -193,7 +193,8 @@ enum Source {
 
 struct TrajectorySource {
     traj: Box<dyn Trajectory>,
-    /// Cycle tracking began in (the trajectory's clock starts there).
+    /// The cycle clock's period count ([`CycleCore`]'s `periods`) when tracking began: the
+    /// trajectory's clock starts there.
     track_start_cycle: Option<u64>,
     /// The kinematic controller finishes the run after the DFL terminated early.
     terminal_active: bool,
@@ -293,6 +294,12 @@ pub struct CycleCore {
     source: Source,
     fb: [WheelFeedback; MAX_WHEELS],
     cycle: u64,
+    /// Periods of the cycle clock elapsed since the first cycle, skipped cycles included
+    /// ([`elapsed_periods`]): the clock of a trajectory and of the live shaper. Equal to
+    /// `cycle` while no cycle is skipped (every lockstep run).
+    periods: u64,
+    /// Periods this cycle's SYNC is after the previous cycle's (1 unless cycles were skipped).
+    periods_this_cycle: u64,
     last_cmd: Command,
     record: CycleRecord,
     stop_requested: bool,
@@ -340,6 +347,27 @@ pub const SETTLED_LEG: f64 = 0.001;
 /// Speed (rad/s) below which a drive has settled at the end of a trajectory (a wheel's
 /// 0.1 rad/s is 8.5 mm/s: the controllers' creep onto the goal).
 pub const SETTLED_SPEED: f64 = 0.1;
+
+/// Most shaper steps one cycle takes after skipped cycles (0.1 s at 250 Hz; twice the
+/// modules' 50 ms setpoint watchdog, after which they stop on their own).
+const MAX_CATCH_UP_PERIODS: u64 = 25;
+
+/// Whole periods `dt` from the SYNC time `prev` to the SYNC time `sync`, at least one: how far
+/// the cycle clock moved from one cycle run to the next. A real-time runtime that falls behind
+/// skips cycles, and the base keeps moving on the setpoints it has meanwhile, so the
+/// references advance by the periods elapsed, not by one per cycle run: a trajectory's clock
+/// that counted cycles run fell behind the base by the skipped time (a stall of 2 of every 3
+/// cycles for 2 s of seed 000 left its reference 9 cm behind the simulated base) and the
+/// controller then pulled the base back to it.
+fn elapsed_periods(dt: f64, prev: f64, sync: f64) -> u64 {
+    let k = (sync - prev) / dt;
+    if k.is_finite() && k > 1.5 {
+        // A clock that jumped by days is still a finite count (saturating cast).
+        k.round() as u64
+    } else {
+        1
+    }
+}
 
 /// The time the odometry integrates a cycle's readings over: the whole number of periods
 /// `dt` between the SYNC that sampled them (`sync`) and the SYNC of the readings it
@@ -493,6 +521,8 @@ impl CycleCore {
             source,
             fb: [WheelFeedback::default(); MAX_WHEELS],
             cycle: 0,
+            periods: 0,
+            periods_this_cycle: 1,
             last_cmd: Command::zero(n),
             record,
             stop_requested: false,
@@ -826,6 +856,8 @@ impl CycleCore {
         if self.cycle > 0 {
             self.prev_sync_t = Some(self.sync_t);
             self.prev_sync_sent = Some(self.sync_sent);
+            self.periods_this_cycle = elapsed_periods(self.platform.dt(), self.sync_t, t);
+            self.periods += self.periods_this_cycle;
         }
         self.sync_t = t;
         self.sync_sent = t;
@@ -1311,7 +1343,7 @@ impl CycleCore {
             Source::Trajectory(TrajectorySource {
                 track_start_cycle: Some(c),
                 ..
-            }) => (self.cycle - c) as f64 * self.platform.dt(),
+            }) => self.periods.saturating_sub(*c) as f64 * self.platform.dt(),
             _ => 0.0,
         }
     }
@@ -1342,6 +1374,12 @@ impl CycleCore {
                     }
                     l.shaper.reset(odo.pose, &legs[..n], &steer[..n]);
                     return l.shaper.hold_sample();
+                }
+                // The shaper's reference advances by the periods elapsed, as a trajectory's
+                // clock does ([`elapsed_periods`]); after a stall longer than
+                // MAX_CATCH_UP_PERIODS the modules' watchdogs have stopped the base anyway.
+                for _ in 1..self.periods_this_cycle.min(MAX_CATCH_UP_PERIODS) {
+                    l.shaper.step();
                 }
                 l.shaper.step()
             }
@@ -1660,7 +1698,7 @@ impl CycleCore {
     ) -> Command {
         let dt = self.platform.dt();
         self.controller_moved = false;
-        let cycle = self.cycle;
+        let cycle = self.periods;
         let dfl = self.cfg.controller == ControllerKind::Dfl;
         let platform = &self.platform;
         let r0 = match &mut self.source {
@@ -1927,9 +1965,9 @@ impl CycleCore {
             Source::Trajectory(src) => {
                 // The time scaling's clock: how fast the trajectory runs now, and why.
                 let status = match (src.track_start_cycle, self.sup.state()) {
-                    (Some(c), SupervisorState::Tracking) => {
-                        src.traj.time_scale((self.cycle - c) as f64 * dt)
-                    }
+                    (Some(c), SupervisorState::Tracking) => src
+                        .traj
+                        .time_scale(self.periods.saturating_sub(c) as f64 * dt),
                     _ => None,
                 };
                 s.shaping = ShapingState {
