@@ -957,6 +957,12 @@ impl Master {
                 }
             }
         }
+        // Frames are read after the cycle starts: the heartbeats seen so far are those read
+        // up to the previous cycle, so a device's silence is judged as of then. Judged as of
+        // `t`, a device that lost two heartbeats in a row faulted in the very cycle its third
+        // arrived, exactly one consumer time after the last (100 ms producer, 300 ms consumer:
+        // CiA 402 seed 000 at 1 % frame loss faulted at 4.3 s, `fault-campaign` case 32).
+        let seen_until = self.last_start.unwrap_or(t);
         self.last_start = Some(t);
         self.push(out, nmt::sync());
         if t >= self.next_master_hb {
@@ -1005,8 +1011,8 @@ impl Master {
                     dev.confirmed = false;
                 }
                 BootState::Started => {
-                    let last = d.last_heartbeat.unwrap_or(t);
-                    if t - last > hb_timeout && !d.hb_lost_reported {
+                    let last = d.last_heartbeat.unwrap_or(seen_until);
+                    if seen_until - last > hb_timeout && !d.hb_lost_reported {
                         let dev = &mut self.devices[i];
                         dev.hb_lost_reported = true;
                         dev.boot = BootState::Lost;
@@ -2591,6 +2597,62 @@ mod tests {
                 }
             ))
         ));
+    }
+
+    /// Heartbeats every 100 ms (the default producer time), 300 ms consumer time: two lost in
+    /// a row are tolerated (the third arrives one consumer time after the last, just before
+    /// a cycle starts, and is read in that cycle: judged at the cycle's start, the silence
+    /// was 300.5 ms and the device faulted); three lost are a fault, at most two cycles after
+    /// the consumer time ran out.
+    #[test]
+    fn two_lost_heartbeats_are_tolerated_three_are_a_fault() {
+        for lost in [2usize, 3] {
+            let cfg = no_homing(1);
+            let mut m = Master::new(&cfg, 0.004);
+            let mut dev = devices(&cfg);
+            let k0 = run_boot(&mut m, &mut dev, 100) + 1;
+            assert!(m.ready());
+            let nodes: Vec<u8> = m.devices.iter().map(|d| d.node).collect();
+            let hb_every = 25; // cycles: 100 ms
+            let mut buf = FrameBuf::new();
+            let mut faulted_at = None;
+            let mut last_hb = k0;
+            for k in k0..k0 + 6 * hb_every {
+                let t = k as f64 * 0.004;
+                buf.clear();
+                m.start_cycle(t, &mut buf);
+                let n = (k - k0) / hb_every;
+                if (k - k0) % hb_every == 0 {
+                    for &node in &nodes {
+                        // Node 1's heartbeats 1..=lost are lost; every other one arrives.
+                        // Sent on the device's own clock, 0.5 ms before this cycle started,
+                        // so read in this cycle, after its start.
+                        if node != 1 || n == 0 || n > lost {
+                            m.on_frame(&nmt::heartbeat(node, NmtState::Operational), t - 0.0005)
+                                .unwrap();
+                        }
+                    }
+                    if n == 0 {
+                        last_hb = k;
+                    }
+                }
+                if faulted_at.is_none() && m.wheel_fault(0).is_some() {
+                    faulted_at = Some(k);
+                }
+            }
+            match lost {
+                2 => assert_eq!(faulted_at, None, "{:?}", m.wheel_fault(0)),
+                _ => {
+                    let k = faulted_at.expect("three heartbeats lost: a fault");
+                    assert!(matches!(
+                        m.wheel_fault(0),
+                        Some((1, _, DeviceFault::HeartbeatLost { ms: 300 }))
+                    ));
+                    // 300 ms is 75 cycles; seen as of the previous cycle start: 76 or 77.
+                    assert!((76..=77).contains(&(k - last_hb)), "{} cycles", k - last_hb);
+                }
+            }
+        }
     }
 
     proptest::proptest! {
