@@ -185,6 +185,20 @@ fn seed000_dfl_tracks_through_the_cia402_profile_within_the_native_bounds() {
     }
 }
 
+/// 1 % of the frames lost, both ways: no drive is taken as lost. With heartbeats every
+/// 100 ms and a 300 ms consumer time, two heartbeats of one device lost in a row happened at
+/// 4.3 s here, and the master judged the silence at the start of the cycle in which the
+/// third was read: a heartbeat fault and a controlled stop on healthy drives (fault-campaign
+/// case 32 on main before bd6249b).
+#[test]
+fn seed000_at_one_percent_frame_loss_completes_without_a_fault() {
+    let mut opts = RunOptions::new(Scenario::Seed000).cia402();
+    opts.bus_faults.drop_prob = 0.01;
+    let out = run(&opts);
+    println!("cia402 at 1 % loss: {}", out.summary.to_json());
+    assert_seed000_bounds(&out);
+}
+
 #[test]
 fn seed000_kinematic_tracks_through_the_cia402_profile() {
     let opts = RunOptions::new(Scenario::Seed000)
