@@ -1146,12 +1146,18 @@ pub struct SoakReport {
     pub final_state: String,
     /// Frames the receive path counted as lost.
     pub lost: u64,
+    /// The platform faulted (a soak on healthy drives must not).
+    pub faulted: bool,
 }
 
-/// Runs `cycles` lockstep cycles of the looping trajectory with random frame loss `loss`.
-pub fn soak(cycles: u64, loss: f64) -> Result<SoakReport, String> {
+/// Runs `cycles` lockstep cycles of the looping trajectory with random frame loss `loss`, on
+/// the native profile or (`cia402`) the CiA 402 one.
+pub fn soak(cycles: u64, loss: f64, cia402: bool) -> Result<SoakReport, String> {
     let wall = std::time::Instant::now();
     let mut o = RigOptions::new(Scenario::Seed000);
+    if cia402 {
+        o = o.cia402();
+    }
     o.bus_faults.drop_prob = loss;
     let seconds = cycles as f64 / 250.0;
     o.waypoints = Some(soak_waypoints((seconds / 10.0).ceil() as usize + 2));
@@ -1187,6 +1193,7 @@ pub fn soak(cycles: u64, loss: f64) -> Result<SoakReport, String> {
         t.fault.map_or(String::new(), |f| fmt_reason(&f.2))
     );
     rep.lost = rig.core.rx_stats().lost;
+    rep.faulted = t.fault.is_some();
     Ok(rep)
 }
 
