@@ -143,34 +143,27 @@ fn operator_stop_is_a_controlled_stop() {
     );
 }
 
-/// A real-time runtime that falls behind skips cycles (no SYNC, no setpoints for them) while
-/// the base keeps rolling. The odometry must integrate the readings over the time that really
-/// passed since the last ones it used, not over one period: here one cycle in three is
-/// skipped for 2 s while seed 000 tracks at speed, and the odometry's error against the
-/// plant grows no more over that stretch than over the 2 s before it. (Integrating one
-/// period per processed cycle lost a third of the travel: ~0.4 m here; 19 mm in 0.14 s in
-/// a loaded CI run of the ROS 2 demo.)
-/// Runs `core` (armed) in lockstep for `total_s`, the controller silent in 2 of every 3
-/// cycles from `skip_s.0` to `skip_s.1` (a real-time runtime that falls behind sends no SYNC
-/// for the cycles it skips; the modules go on with their last setpoints); `command(t)` may
-/// give a live command to pass in before a cycle that runs. Returns the largest distance
-/// between the simulator's truth and the reference from the first skip to the end, and the
-/// number of cycles skipped.
-fn largest_error_with_skips(
+/// Runs `core` in lockstep (armed here) for `total_s`, the controller silent in 2 of every
+/// 3 cycles from `skip_s.0` to `skip_s.1` (a real-time runtime that falls behind sends no
+/// SYNC for the cycles it skips; the modules go on with their last setpoints). Before each
+/// cycle that runs, `command(t)` may give a live command; after it, `each(k, core)` sees
+/// the core (no cycle may end in Fault). Returns the number of cycles skipped.
+fn run_with_skips(
     core: &mut rollbase_control::runtime::CycleCore,
     sim: &mut rollbase_vcan_sim::Simulator,
     bus: &mut rollbase_control::runtime::VirtualLockstepBus,
     total_s: f64,
     skip_s: (f64, f64),
     command: &mut dyn FnMut(f64) -> Option<rollbase_control::service::ports::CommandEvent>,
-) -> (f64, u64) {
+    each: &mut dyn FnMut(u64, &rollbase_control::runtime::CycleCore),
+) -> u64 {
     use rollbase_control::runtime::{lockstep_cycle, LockstepState, StepHooks};
     let mut st = LockstepState::new(core);
     core.arm();
     let period = core.platform().dt();
     let cycles = |s: f64| (s / period).round() as u64;
     let (skip_from, skip_to) = (cycles(skip_s.0), cycles(skip_s.1));
-    let (mut worst, mut skipped) = (0.0f64, 0u64);
+    let mut skipped = 0u64;
     for k in 0..=cycles(total_s) {
         let skip = k > skip_from && k < skip_to && k % 3 != 0;
         skipped += skip as u64;
@@ -186,20 +179,38 @@ fn largest_error_with_skips(
         if !lockstep_cycle(&mut st, core, bus, sim, &mut hooks) {
             continue;
         }
-        let rec = core.record();
         assert_ne!(
             core.base_state().state,
             SupervisorState::Fault,
             "t = {} s: {:?}",
-            rec.t,
+            core.record().t,
             core.base_state().reason
         );
+        each(k, core);
+    }
+    skipped
+}
+
+/// [`run_with_skips`]: the largest distance between the simulator's truth and the reference
+/// from the first skip to the end, and the number of cycles skipped.
+fn largest_error_with_skips(
+    core: &mut rollbase_control::runtime::CycleCore,
+    sim: &mut rollbase_vcan_sim::Simulator,
+    bus: &mut rollbase_control::runtime::VirtualLockstepBus,
+    total_s: f64,
+    skip_s: (f64, f64),
+    command: &mut dyn FnMut(f64) -> Option<rollbase_control::service::ports::CommandEvent>,
+) -> (f64, u64) {
+    let skip_from = (skip_s.0 / core.platform().dt()).round() as u64;
+    let mut worst = 0.0f64;
+    let skipped = run_with_skips(core, sim, bus, total_s, skip_s, command, &mut |k, core| {
         if k >= skip_from {
+            let rec = core.record();
             let (truth, _) = rec.truth.expect("truth");
             let r = &rec.reference.z;
             worst = worst.max(f64::hypot(truth.x - r[0], truth.y - r[1]));
         }
-    }
+    });
     (worst, skipped)
 }
 
@@ -214,95 +225,85 @@ fn largest_error_with_skips(
 /// the trajectory while the controllers integrated one period per cycle run.
 #[test]
 fn references_count_the_time_of_skipped_cycles() {
+    let judge = |name: &str, (worst, skipped): (f64, u64)| {
+        println!(
+            "{name}: {skipped} cycles skipped, largest error {:.2} mm",
+            worst * 1e3
+        );
+        assert!(skipped > 150, "{name}: {skipped} cycles skipped");
+        assert!(
+            worst < 0.001,
+            "{name}: the truth was {:.2} mm from the reference",
+            worst * 1e3
+        );
+    };
     let (mut core, mut sim, mut bus, _) =
         rollbase_tests::build(&RunOptions::new(Scenario::Seed000)).expect("setup");
-    let (worst, skipped) = largest_error_with_skips(
-        &mut core,
-        &mut sim,
-        &mut bus,
-        12.0,
-        (8.0, 10.0),
-        &mut |_| None,
-    );
-    println!(
-        "trajectory: {skipped} cycles skipped, largest error {:.2} mm",
-        worst * 1e3
-    );
-    assert!(skipped > 150, "{skipped} cycles skipped");
-    assert!(
-        worst < 0.001,
-        "trajectory: the truth was {:.2} mm from the reference",
-        worst * 1e3
+    judge(
+        "trajectory",
+        largest_error_with_skips(
+            &mut core,
+            &mut sim,
+            &mut bus,
+            12.0,
+            (8.0, 10.0),
+            &mut |_| None,
+        ),
     );
 
     // Live: a joystick held at 0.4 m/s sideways while turning, sent at 50 Hz.
     let (mut core, mut sim, mut bus) =
         rollbase_tests::build_live(&rollbase_tests::LiveOptions::default());
     let mut next = 0.0;
-    let (worst, skipped) =
+    judge(
+        "live",
         largest_error_with_skips(&mut core, &mut sim, &mut bus, 10.0, (5.0, 7.0), &mut |t| {
             (t + 1e-9 >= next).then(|| {
                 next = t + 0.02;
                 rollbase_tests::twist_at(t, 0.1, 0.4, 0.3)
             })
-        });
-    println!(
-        "live: {skipped} cycles skipped, largest error {:.2} mm",
-        worst * 1e3
-    );
-    assert!(skipped > 150, "{skipped} cycles skipped");
-    assert!(
-        worst < 0.001,
-        "live: the truth was {:.2} mm from the reference",
-        worst * 1e3
+        }),
     );
 }
 
+/// A real-time runtime that falls behind skips cycles (no SYNC, no setpoints for them) while
+/// the base keeps rolling. The odometry must integrate the readings over the time that really
+/// passed since the last ones it used, not over one period: here two cycles in three are
+/// skipped for 2 s while seed 000 tracks at speed, and the odometry's error against the
+/// plant grows no more over that stretch than over the 2 s before it. (Integrating one
+/// period per processed cycle lost a third of the travel: ~0.4 m here; 19 mm in 0.14 s in
+/// a loaded CI run of the ROS 2 demo.)
 #[test]
 fn odometry_counts_the_time_of_skipped_cycles() {
-    use rollbase_control::runtime::{lockstep_cycle, LockstepState, StepHooks};
     let (mut core, mut sim, mut bus, _) =
         rollbase_tests::build(&RunOptions::new(Scenario::Seed000)).expect("setup");
-    let mut st = LockstepState::new(&core);
-    core.arm();
     let period = core.platform().dt();
     let cycles = |s: f64| (s / period).round() as u64;
     let (normal_from, skip_from, skip_to) = (cycles(6.0), cycles(8.0), cycles(10.0));
     let mut err_at = std::collections::BTreeMap::new();
-    let mut skipped = 0u64;
     let mut travel = 0.0;
     let mut last_pose = None;
-    for k in 0..=skip_to {
-        let skip = k > skip_from && k < skip_to && k % 3 != 0;
-        skipped += skip as u64;
-        let mut hooks = StepHooks {
-            controller_silent: skip,
-            ..Default::default()
-        };
-        let ran = lockstep_cycle(&mut st, &mut core, &mut bus, &mut sim, &mut hooks);
-        if !ran {
-            continue;
-        }
-        let rec = core.record();
-        assert_ne!(
-            core.base_state().state,
-            SupervisorState::Fault,
-            "t = {} s: {:?}",
-            rec.t,
-            core.base_state().reason
-        );
-        let (truth, _) = rec.truth.expect("truth");
-        if (skip_from..skip_to).contains(&k) {
-            if let Some((x, y)) = last_pose {
-                travel += f64::hypot(truth.x - x, truth.y - y);
+    let skipped = run_with_skips(
+        &mut core,
+        &mut sim,
+        &mut bus,
+        10.0,
+        (8.0, 10.0),
+        &mut |_| None,
+        &mut |k, core| {
+            let (truth, _) = core.record().truth.expect("truth");
+            if (skip_from..skip_to).contains(&k) {
+                if let Some((x, y)) = last_pose {
+                    travel += f64::hypot(truth.x - x, truth.y - y);
+                }
+                last_pose = Some((truth.x, truth.y));
             }
-            last_pose = Some((truth.x, truth.y));
-        }
-        if [normal_from, skip_from, skip_to].contains(&k) {
-            let o = core.base_state().odometry.pose;
-            err_at.insert(k, f64::hypot(o.x - truth.x, o.y - truth.y));
-        }
-    }
+            if [normal_from, skip_from, skip_to].contains(&k) {
+                let o = core.base_state().odometry.pose;
+                err_at.insert(k, f64::hypot(o.x - truth.x, o.y - truth.y));
+            }
+        },
+    );
     let grow_normal = err_at[&skip_from] - err_at[&normal_from];
     let grow_skipping = err_at[&skip_to] - err_at[&skip_from];
     println!(
