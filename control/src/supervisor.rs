@@ -287,7 +287,10 @@ impl std::fmt::Display for FaultReason {
             Self::Slip { residual } => {
                 write!(
                     f,
-                    "wheel slip: odometry residual {residual:.4} m/s above threshold"
+                    "wheel slip: odometry residual {residual:.4} m/s above threshold (the \
+                     wheels' measured velocities disagree: a wheel slipping or held, a leg \
+                     against its end stop, a drive not following its command); check the \
+                     wheels, the floor, the legs and the drives, then re-arm"
                 )
             }
             Self::AlignmentTimeout { error } => write!(
