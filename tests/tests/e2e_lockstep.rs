@@ -147,7 +147,8 @@ fn operator_stop_is_a_controlled_stop() {
 /// 3 cycles from `skip_s.0` to `skip_s.1` (a real-time runtime that falls behind sends no
 /// SYNC for the cycles it skips; the modules go on with their last setpoints). Before each
 /// cycle that runs, `command(t)` may give a live command; after it, `each(k, core)` sees
-/// the core (no cycle may end in Fault). Returns the number of cycles skipped.
+/// the core (no cycle may end in Fault). Returns the number of cycles skipped and the
+/// largest distance between the simulator's truth and the reference from the first skip on.
 fn run_with_skips(
     core: &mut rollbase_control::runtime::CycleCore,
     sim: &mut rollbase_vcan_sim::Simulator,
@@ -156,14 +157,14 @@ fn run_with_skips(
     skip_s: (f64, f64),
     command: &mut dyn FnMut(f64) -> Option<rollbase_control::service::ports::CommandEvent>,
     each: &mut dyn FnMut(u64, &rollbase_control::runtime::CycleCore),
-) -> u64 {
+) -> (u64, f64) {
     use rollbase_control::runtime::{lockstep_cycle, LockstepState, StepHooks};
     let mut st = LockstepState::new(core);
     core.arm();
     let period = core.platform().dt();
     let cycles = |s: f64| (s / period).round() as u64;
     let (skip_from, skip_to) = (cycles(skip_s.0), cycles(skip_s.1));
-    let mut skipped = 0u64;
+    let (mut skipped, mut worst) = (0u64, 0.0f64);
     for k in 0..=cycles(total_s) {
         let skip = k > skip_from && k < skip_to && k % 3 != 0;
         skipped += skip as u64;
@@ -179,39 +180,22 @@ fn run_with_skips(
         if !lockstep_cycle(&mut st, core, bus, sim, &mut hooks) {
             continue;
         }
+        let rec = core.record();
         assert_ne!(
             core.base_state().state,
             SupervisorState::Fault,
             "t = {} s: {:?}",
-            core.record().t,
+            rec.t,
             core.base_state().reason
         );
-        each(k, core);
-    }
-    skipped
-}
-
-/// [`run_with_skips`]: the largest distance between the simulator's truth and the reference
-/// from the first skip to the end, and the number of cycles skipped.
-fn largest_error_with_skips(
-    core: &mut rollbase_control::runtime::CycleCore,
-    sim: &mut rollbase_vcan_sim::Simulator,
-    bus: &mut rollbase_control::runtime::VirtualLockstepBus,
-    total_s: f64,
-    skip_s: (f64, f64),
-    command: &mut dyn FnMut(f64) -> Option<rollbase_control::service::ports::CommandEvent>,
-) -> (f64, u64) {
-    let skip_from = (skip_s.0 / core.platform().dt()).round() as u64;
-    let mut worst = 0.0f64;
-    let skipped = run_with_skips(core, sim, bus, total_s, skip_s, command, &mut |k, core| {
         if k >= skip_from {
-            let rec = core.record();
             let (truth, _) = rec.truth.expect("truth");
             let r = &rec.reference.z;
             worst = worst.max(f64::hypot(truth.x - r[0], truth.y - r[1]));
         }
-    });
-    (worst, skipped)
+        each(k, core);
+    }
+    (skipped, worst)
 }
 
 /// The references count the time of skipped cycles: a trajectory's clock and the live
@@ -225,7 +209,7 @@ fn largest_error_with_skips(
 /// the trajectory while the controllers integrated one period per cycle run.
 #[test]
 fn references_count_the_time_of_skipped_cycles() {
-    let judge = |name: &str, (worst, skipped): (f64, u64)| {
+    let judge = |name: &str, (skipped, worst): (u64, f64)| {
         println!(
             "{name}: {skipped} cycles skipped, largest error {:.2} mm",
             worst * 1e3
@@ -241,13 +225,14 @@ fn references_count_the_time_of_skipped_cycles() {
         rollbase_tests::build(&RunOptions::new(Scenario::Seed000)).expect("setup");
     judge(
         "trajectory",
-        largest_error_with_skips(
+        run_with_skips(
             &mut core,
             &mut sim,
             &mut bus,
             12.0,
             (8.0, 10.0),
             &mut |_| None,
+            &mut |_, _| {},
         ),
     );
 
@@ -257,12 +242,20 @@ fn references_count_the_time_of_skipped_cycles() {
     let mut next = 0.0;
     judge(
         "live",
-        largest_error_with_skips(&mut core, &mut sim, &mut bus, 10.0, (5.0, 7.0), &mut |t| {
-            (t + 1e-9 >= next).then(|| {
-                next = t + 0.02;
-                rollbase_tests::twist_at(t, 0.1, 0.4, 0.3)
-            })
-        }),
+        run_with_skips(
+            &mut core,
+            &mut sim,
+            &mut bus,
+            10.0,
+            (5.0, 7.0),
+            &mut |t| {
+                (t + 1e-9 >= next).then(|| {
+                    next = t + 0.02;
+                    rollbase_tests::twist_at(t, 0.1, 0.4, 0.3)
+                })
+            },
+            &mut |_, _| {},
+        ),
     );
 }
 
@@ -283,7 +276,7 @@ fn odometry_counts_the_time_of_skipped_cycles() {
     let mut err_at = std::collections::BTreeMap::new();
     let mut travel = 0.0;
     let mut last_pose = None;
-    let skipped = run_with_skips(
+    let (skipped, _) = run_with_skips(
         &mut core,
         &mut sim,
         &mut bus,

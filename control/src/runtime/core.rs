@@ -195,7 +195,7 @@ struct TrajectorySource {
     traj: Box<dyn Trajectory>,
     /// The cycle clock's period count ([`CycleCore`]'s `periods`) when tracking began: the
     /// trajectory's clock starts there.
-    track_start_cycle: Option<u64>,
+    track_start_period: Option<u64>,
     /// The kinematic controller finishes the run after the DFL terminated early.
     terminal_active: bool,
 }
@@ -408,7 +408,7 @@ impl CycleCore {
         legs[..n].copy_from_slice(&r0.z.as_slice()[3..3 + n]);
         let source = Source::Trajectory(TrajectorySource {
             traj: trajectory,
-            track_start_cycle: None,
+            track_start_period: None,
             terminal_active: false,
         });
         Ok(Self::build(platform, cfg, source, r0.pose(), &legs[..n]))
@@ -673,7 +673,7 @@ impl CycleCore {
         }
         self.done_cycles = 0;
         match &mut self.source {
-            Source::Trajectory(s) => s.track_start_cycle = None,
+            Source::Trajectory(s) => s.track_start_period = None,
             Source::Live(l) => {
                 l.stop_pending = false;
                 l.shaper.halt_for(Limiting::None);
@@ -1347,7 +1347,7 @@ impl CycleCore {
     fn reference_time(&self) -> f64 {
         match &self.source {
             Source::Trajectory(TrajectorySource {
-                track_start_cycle: Some(c),
+                track_start_period: Some(c),
                 ..
             }) => self.periods.saturating_sub(*c) as f64 * self.platform.dt(),
             _ => 0.0,
@@ -1704,12 +1704,12 @@ impl CycleCore {
     ) -> Command {
         let dt = self.platform.dt();
         self.controller_moved = false;
-        let cycle = self.periods;
+        let period_now = self.periods;
         let dfl = self.cfg.controller == ControllerKind::Dfl;
         let platform = &self.platform;
         let r0 = match &mut self.source {
             Source::Trajectory(s) => {
-                s.track_start_cycle = Some(cycle);
+                s.track_start_period = Some(period_now);
                 let r0 = s.traj.sample(0.0);
                 // A reference that starts from rest (slower than the DFL's ε, which it
                 // cannot leave on its own) starts with the kinematic controller; the DFL
@@ -1970,7 +1970,7 @@ impl CycleCore {
             }
             Source::Trajectory(src) => {
                 // The time scaling's clock: how fast the trajectory runs now, and why.
-                let status = match (src.track_start_cycle, self.sup.state()) {
+                let status = match (src.track_start_period, self.sup.state()) {
                     (Some(c), SupervisorState::Tracking) => src
                         .traj
                         .time_scale(self.periods.saturating_sub(c) as f64 * dt),
