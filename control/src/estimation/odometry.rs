@@ -57,6 +57,21 @@
 //! error was about a tenth of the reported σ; `tests/tests/e2e_drive.rs`). The covariance
 //! does not know systematic errors (a wrong wheel radius, a slipping wheel the
 //! residual does not see); the slip residual is reported separately.
+//!
+//! # Which wheel slips
+//!
+//! The residual says that the wheels disagree, not which one. Least squares spreads one
+//! wheel's error e over every wheel: the residuals are (I − H) e, H = A(AᵀA)⁻¹Aᵀ the hat
+//! matrix, so the slipping wheel keeps only part of its own error and the others take the
+//! rest; on Justin's four wheels the largest residual is not always the slipping wheel's.
+//! The odometry therefore also fits the twist without each wheel k in turn (leave-one-out:
+//! n more 3×3 solves a cycle, 2(n − 1) ≥ 4 equations in 3 unknowns for n ≥ 3) and names
+//! the wheel whose removal leaves the others most consistent ([`SlipSuspect`]). If only
+//! wheel k is wrong, the others fit exactly (their RMS mismatch is the encoders' and the
+//! drives' momentary lag), and wheel k's distance from what that fit gives it is e itself,
+//! undiluted: a wheel spinning 0.1 m/s faster than the ground under it is 0.1 m/s off. If
+//! several wheels are wrong, no removal leaves the rest consistent, which the supervisor
+//! says instead of naming one ([`crate::supervisor::SLIP_SINGLE_WHEEL`]).
 
 // Index loops over parallel per-wheel arrays read better than zipped iterators here.
 #![allow(clippy::needless_range_loop)]
@@ -81,6 +96,9 @@ pub struct OdometryOutput {
     pub twist_world: Twist,
     /// RMS per-wheel velocity mismatch (m/s): the slip indicator.
     pub residual: f64,
+    /// The wheel the mismatch most likely comes from (module docs, "Which wheel slips");
+    /// `None` with fewer than three wheels or without a valid reading.
+    pub suspect: Option<SlipSuspect>,
 }
 
 /// Least-squares body twist and RMS residual from wheel contact velocities `w` (body
@@ -144,44 +162,68 @@ fn solve_with(
     leg_rates: &[f64; MAX_WHEELS],
     steer: &[Option<(f64, f64)>; MAX_WHEELS],
 ) -> Option<Solution> {
+    solve_without(p, n, w, legs, leg_rates, steer, None)
+}
+
+/// A wheel's rows of the least-squares system: (A_i as two rows, b_i).
+fn rows(
+    wc: &crate::model::platform::WheelConfig,
+    w: [f64; 2],
+    leg: f64,
+    leg_rate: f64,
+    steer: Option<(f64, f64)>,
+) -> ([Vector3<f64>; 2], [f64; 2]) {
+    let (sa, ca) = wc.alpha.sin_cos();
+    let (c, sweep) = offset_rows(wc, leg, steer).unwrap_or(([leg * ca, leg * sa], [0.0, 0.0]));
+    (
+        [Vector3::new(1.0, 0.0, -c[1]), Vector3::new(0.0, 1.0, c[0])],
+        [
+            w[0] + sweep[0] - leg_rate * ca,
+            w[1] + sweep[1] - leg_rate * sa,
+        ],
+    )
+}
+
+/// The least-squares solution over the first `n` wheels but `skip`.
+fn solve_without(
+    p: &Platform,
+    n: usize,
+    w: &[[f64; 2]; MAX_WHEELS],
+    legs: &[f64; MAX_WHEELS],
+    leg_rates: &[f64; MAX_WHEELS],
+    steer: &[Option<(f64, f64)>; MAX_WHEELS],
+    skip: Option<usize>,
+) -> Option<Solution> {
+    let used = |i: usize| Some(i) != skip;
     let mut ata = Matrix3::<f64>::zeros();
     let mut atb = Vector3::<f64>::zeros();
-    for (i, wc) in p.wheels.iter().enumerate().take(n) {
-        let (sa, ca) = wc.alpha.sin_cos();
-        let l = legs[i];
-        if let Some((c, sweep)) = offset_rows(wc, l, steer[i]) {
-            let r0 = Vector3::new(1.0, 0.0, -c[1]);
-            let r1 = Vector3::new(0.0, 1.0, c[0]);
-            let b0 = w[i][0] + sweep[0] - leg_rates[i] * ca;
-            let b1 = w[i][1] + sweep[1] - leg_rates[i] * sa;
-            ata += r0 * r0.transpose() + r1 * r1.transpose();
-            atb += r0 * b0 + r1 * b1;
-            continue;
-        }
-        let r0 = Vector3::new(1.0, 0.0, -l * sa);
-        let r1 = Vector3::new(0.0, 1.0, l * ca);
-        let b0 = w[i][0] - leg_rates[i] * ca;
-        let b1 = w[i][1] - leg_rates[i] * sa;
-        ata += r0 * r0.transpose() + r1 * r1.transpose();
-        atb += r0 * b0 + r1 * b1;
+    for (i, wc) in p
+        .wheels
+        .iter()
+        .enumerate()
+        .take(n)
+        .filter(|(i, _)| used(*i))
+    {
+        let (a, b) = rows(wc, w[i], legs[i], leg_rates[i], steer[i]);
+        ata += a[0] * a[0].transpose() + a[1] * a[1].transpose();
+        atb += a[0] * b[0] + a[1] * b[1];
     }
     let x = ata.lu().solve(&atb)?;
     if !x.iter().all(|v| v.is_finite()) {
         return None;
     }
     let mut sq = 0.0;
-    for (i, wc) in p.wheels.iter().enumerate().take(n) {
-        let (sa, ca) = wc.alpha.sin_cos();
-        let l = legs[i];
-        if let Some((c, sweep)) = offset_rows(wc, l, steer[i]) {
-            let ex = x[0] - x[2] * c[1] + leg_rates[i] * ca - w[i][0] - sweep[0];
-            let ey = x[1] + x[2] * c[0] + leg_rates[i] * sa - w[i][1] - sweep[1];
-            sq += ex * ex + ey * ey;
-            continue;
-        }
-        let ex = x[0] - x[2] * l * sa + leg_rates[i] * ca - w[i][0];
-        let ey = x[1] + x[2] * l * ca + leg_rates[i] * sa - w[i][1];
-        sq += ex * ex + ey * ey;
+    let mut count = 0usize;
+    for (i, wc) in p
+        .wheels
+        .iter()
+        .enumerate()
+        .take(n)
+        .filter(|(i, _)| used(*i))
+    {
+        let (a, b) = rows(wc, w[i], legs[i], leg_rates[i], steer[i]);
+        sq += (a[0].dot(&x) - b[0]).powi(2) + (a[1].dot(&x) - b[1]).powi(2);
+        count += 1;
     }
     Some(Solution {
         twist: Twist {
@@ -189,10 +231,54 @@ fn solve_with(
             vy: x[1],
             omega: x[2],
         },
-        rms: (sq / n.max(1) as f64).sqrt(),
+        rms: (sq / count.max(1) as f64).sqrt(),
         rss: sq,
         ata,
     })
+}
+
+/// The wheel the slip residual most likely comes from (module docs, "Which wheel slips").
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SlipSuspect {
+    /// Wheel index (from 0).
+    pub wheel: usize,
+    /// How far (m/s) the wheel's measured contact velocity is from the one the twist fitted
+    /// to the other wheels gives it.
+    pub off: f64,
+    /// RMS mismatch (m/s) of the other wheels about their own fit.
+    pub others: f64,
+}
+
+/// Leave-one-out over the wheels (module docs, "Which wheel slips"); `None` for fewer than
+/// three wheels or where no fit without a wheel is solvable.
+fn slip_suspect(
+    p: &Platform,
+    n: usize,
+    w: &[[f64; 2]; MAX_WHEELS],
+    legs: &[f64; MAX_WHEELS],
+    leg_rates: &[f64; MAX_WHEELS],
+    steer: &[Option<(f64, f64)>; MAX_WHEELS],
+) -> Option<SlipSuspect> {
+    if n < 3 {
+        return None;
+    }
+    let mut best: Option<SlipSuspect> = None;
+    for k in 0..n {
+        let Some(sol) = solve_without(p, n, w, legs, leg_rates, steer, Some(k)) else {
+            continue;
+        };
+        if best.is_some_and(|b| b.others <= sol.rms) {
+            continue;
+        }
+        let x = Vector3::new(sol.twist.vx, sol.twist.vy, sol.twist.omega);
+        let (a, b) = rows(&p.wheels[k], w[k], legs[k], leg_rates[k], steer[k]);
+        best = Some(SlipSuspect {
+            wheel: k,
+            off: (a[0].dot(&x) - b[0]).hypot(a[1].dot(&x) - b[1]),
+            others: sol.rms,
+        });
+    }
+    best
 }
 
 /// Resolution of the encoders the odometry reads (one step of the transmitted value).
@@ -315,6 +401,7 @@ impl Odometry {
                 twist_body: Twist::default(),
                 twist_world: Twist::default(),
                 residual: f64::INFINITY,
+                suspect: None,
                 pose_covariance: to_array(&self.pose_cov),
                 twist_covariance: [[f64::INFINITY; 3]; 3],
             };
@@ -365,6 +452,7 @@ impl Odometry {
                 omega: tw.omega,
             },
             residual,
+            suspect: slip_suspect(p, n, &w, &legs, &rates, &steer),
         }
     }
 }
@@ -447,6 +535,47 @@ mod tests {
         // one wheel off by 0.1 m/s: least squares spreads it, the RMS stays a clear fraction
         assert!(out.residual > 0.03, "residual {}", out.residual);
         assert!(out.residual < 0.1);
+    }
+
+    #[test]
+    fn leave_one_out_names_the_slipping_wheel_and_its_whole_error() {
+        let p = Platform::justin();
+        let tw = Twist {
+            vx: 0.3,
+            vy: -0.1,
+            omega: 0.5,
+        };
+        let legs = [0.42, 0.47, 0.5, 0.55];
+        for k in 0..4 {
+            let mut m = consistent_measurement(&p, tw, legs, [0.0; 4]);
+            // wheel k spins 0.08 m/s faster than the ground moves under it
+            m.wheels[k].wheel_speed += 0.08 / p.wheel_radius;
+            let out = Odometry::new(Pose::default()).update(&p, &m, 0.004);
+            let s = out.suspect.expect("four wheels: a suspect");
+            assert_eq!(s.wheel, k, "{s:?}");
+            assert!((s.off - 0.08).abs() < 1e-9, "wheel {k}: off {}", s.off);
+            assert!(s.others < 1e-9, "wheel {k}: others {}", s.others);
+        }
+    }
+
+    #[test]
+    fn two_wrong_wheels_leave_no_consistent_rest() {
+        let p = Platform::justin();
+        let tw = Twist {
+            vx: 0.2,
+            vy: 0.2,
+            omega: -0.3,
+        };
+        let mut m = consistent_measurement(&p, tw, [0.45; 4], [0.0; 4]);
+        m.wheels[0].wheel_speed += 0.1 / p.wheel_radius;
+        m.wheels[2].steer_angle += 0.3;
+        let out = Odometry::new(Pose::default()).update(&p, &m, 0.004);
+        let s = out.suspect.expect("a suspect");
+        // without either wrong wheel the other one still disagrees with the remaining two
+        assert!(
+            s.others > crate::supervisor::SLIP_SINGLE_WHEEL * s.off,
+            "{s:?} would name one wheel"
+        );
     }
 
     #[test]
