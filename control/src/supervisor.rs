@@ -53,6 +53,7 @@
 //!
 //! The supervisor is pure: inputs in, decision out; time is the cycle index.
 
+use crate::estimation::odometry::SlipSuspect;
 use crate::model::platform::Platform;
 use crate::num::{Fixed3, Num};
 use crate::types::{Command, MAX_WHEELS};
@@ -145,6 +146,14 @@ pub enum FaultReason {
     Slip {
         /// Residual (m/s).
         residual: f64,
+        /// The wheel the residual most likely comes from, that cycle (leave-one-out fit,
+        /// [`crate::estimation::odometry`], "Which wheel slips").
+        suspect: Option<SlipSuspect>,
+        /// The drive that has been outside its following window longest as the fault is
+        /// raised, if any, as (wheel, quantity, seconds): a held wheel drags the others
+        /// along, so every wheel slips and no single one explains the residual, but its
+        /// drive is the one not following (the following error itself needs its timeout).
+        behind: Option<(usize, FollowQuantity, f64)>,
     },
     /// The wheels did not reach their initial angles in time.
     AlignmentTimeout {
@@ -226,6 +235,30 @@ impl std::fmt::Display for FollowQuantity {
     }
 }
 
+impl FaultReason {
+    /// The one wheel a slip fault names: its leave-one-out suspect, where the other wheels
+    /// agree among themselves ([`SLIP_SINGLE_WHEEL`]). `None` for any other fault, and for a
+    /// slip no single wheel explains.
+    pub fn slip_wheel(&self) -> Option<usize> {
+        match *self {
+            Self::Slip {
+                suspect: Some(s), ..
+            } if s.others <= SLIP_SINGLE_WHEEL * s.off => Some(s.wheel),
+            _ => None,
+        }
+    }
+
+    /// The wheel a slip fault tells the operator to check first: the one it names
+    /// ([`FaultReason::slip_wheel`]), else the one whose drive has been outside its following
+    /// window longest. `None` for any other fault, and for a slip that points at no wheel.
+    pub fn slip_lead(&self) -> Option<usize> {
+        match *self {
+            Self::Slip { behind, .. } => self.slip_wheel().or(behind.map(|b| b.0)),
+            _ => None,
+        }
+    }
+}
+
 /// Which limit a [`FaultReason::LimitBreach`] refers to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum LimitKind {
@@ -284,14 +317,58 @@ impl std::fmt::Display for FaultReason {
                  their communication-loss reaction; re-arm once the bus is back (the devices \
                  are booted again)"
             ),
-            Self::Slip { residual } => {
+            Self::Slip {
+                residual,
+                suspect,
+                behind,
+            } => {
                 write!(
                     f,
                     "wheel slip: odometry residual {residual:.4} m/s above threshold (the \
-                     wheels' measured velocities disagree: a wheel slipping or held, a leg \
-                     against its end stop, a drive not following its command); check the \
-                     wheels, the floor, the legs and the drives, then re-arm"
-                )
+                     wheels' measured velocities disagree)"
+                )?;
+                match suspect {
+                    Some(s) if self.slip_wheel().is_some() => write!(
+                        f,
+                        "; wheel {w} moves {off:.3} m/s off what the other wheels give it \
+                         (they agree to {others:.3} m/s among themselves): wheel {w} slipping \
+                         or held, its leg against an end stop, or its drives not following \
+                         their commands; check wheel {w}'s tyre and the floor under it, its \
+                         leg and its drives, then re-arm",
+                        w = s.wheel + 1,
+                        off = s.off,
+                        others = s.others
+                    ),
+                    Some(s) => {
+                        write!(
+                            f,
+                            "; no single wheel explains it (without any one of them the others \
+                             still disagree by {others:.3} m/s or more): several wheels \
+                             slipping, a drive not following its command while the others drag \
+                             its wheel, or a leg against its end stop",
+                            others = s.others
+                        )?;
+                        if let Some((w, q, t)) = behind {
+                            write!(
+                                f,
+                                "; wheel {w}'s {q} has been outside its following window for \
+                                 {ms:.0} ms: check wheel {w}'s drive first",
+                                w = w + 1,
+                                ms = t * 1e3
+                            )?;
+                        }
+                        write!(
+                            f,
+                            "; check the wheels, the floor, the legs and the drives, then re-arm"
+                        )
+                    }
+                    None => write!(
+                        f,
+                        ": a wheel slipping or held, a leg against its end stop, a drive not \
+                         following its command; check the wheels, the floor, the legs and the \
+                         drives, then re-arm"
+                    ),
+                }
             }
             Self::AlignmentTimeout { error } => write!(
                 f,
@@ -413,6 +490,12 @@ pub struct SupervisorConfig {
     /// (10 × the 2 mm leg bound).
     pub arrive_leg: f64,
 }
+
+/// A slip fault names one wheel when the others, fitted without it, agree among themselves to
+/// within this share of how far that wheel is off their fit: one wheel slipping leaves the
+/// others consistent (their mismatch is the encoders' and the drives' lag, millimetres a
+/// second), so the share is near zero; several wheels disagreeing leave it near one.
+pub const SLIP_SINGLE_WHEEL: f64 = 0.25;
 
 /// Commands remembered per wheel for the following-error check (cycles).
 pub const FOLLOW_HISTORY: usize = 64;
@@ -563,6 +646,23 @@ impl FollowMonitor {
         self.len = (self.len + 1).min(FOLLOW_HISTORY);
     }
 
+    /// The drive outside its following window for the most cycles in a row, among the first
+    /// `n` wheels, as (wheel, quantity, seconds); `None` when every drive follows.
+    fn behind(&self, n: usize, dt: f64) -> Option<(usize, FollowQuantity, f64)> {
+        let mut best: Option<(usize, FollowQuantity, u32)> = None;
+        for (i, out) in self.outside.iter().enumerate().take(n) {
+            for (q, quantity) in [
+                (0, FollowQuantity::WheelSpeed),
+                (1, FollowQuantity::SteerRate),
+            ] {
+                if out[q] > 0 && best.is_none_or(|b| out[q] > b.2) {
+                    best = Some((i, quantity, out[q]));
+                }
+            }
+        }
+        best.map(|(i, q, c)| (i, q, f64::from(c) * dt))
+    }
+
     /// Range (min, max) of the last `k` commands of wheel `i`, quantity `q`, and the newest.
     fn range(&self, i: usize, q: usize, k: usize) -> (f64, f64, f64) {
         let k = k.min(self.len).max(1);
@@ -616,6 +716,10 @@ pub struct SupervisorInput {
     pub bus_off: Option<u8>,
     /// Odometry slip residual (m/s).
     pub slip_residual: f64,
+    /// The wheel the residual most likely comes from ([`OdometryOutput::suspect`]).
+    ///
+    /// [`OdometryOutput::suspect`]: crate::estimation::odometry::OdometryOutput::suspect
+    pub slip_suspect: Option<SlipSuspect>,
     /// An operator stop was requested (Ctrl-C): controlled stop, not a fault.
     pub stop_requested: bool,
     /// Per wheel, whether its drives report enabled (native STATUS Enabled; CiA 402 both
@@ -879,6 +983,8 @@ impl Supervisor {
             if self.slip_count >= self.cfg.slip_cycles {
                 return Some(FaultReason::Slip {
                     residual: input.slip_residual,
+                    suspect: input.slip_suspect,
+                    behind: self.follow.behind(self.n, self.dt),
                 });
             }
         } else {
@@ -1280,6 +1386,93 @@ mod tests {
         assert_eq!(s.state(), SupervisorState::Tracking);
         s.step(&p, &inp, false);
         assert!(matches!(s.reason(), Some(FaultReason::Slip { .. })));
+    }
+
+    #[test]
+    fn the_slip_fault_names_the_wheel_only_when_the_others_agree() {
+        let slip = |others: f64, behind| FaultReason::Slip {
+            residual: 0.12,
+            suspect: Some(SlipSuspect {
+                wheel: 1,
+                off: 0.24,
+                others,
+            }),
+            behind,
+        };
+        let one = slip(0.004, None);
+        assert_eq!(one.slip_wheel(), Some(1));
+        let text = one.to_string();
+        assert!(text.contains("wheel 2 moves 0.240 m/s off"), "{text}");
+        assert!(text.contains("check wheel 2's tyre"), "{text}");
+
+        let several = slip(0.1, None);
+        assert_eq!(several.slip_wheel(), None);
+        let text = several.to_string();
+        assert!(text.contains("no single wheel explains it"), "{text}");
+        assert!(!text.contains("wheel 2"), "{text}");
+
+        // A held wheel: no single wheel explains the residual, but its drive is behind.
+        let held = slip(0.1, Some((2, FollowQuantity::WheelSpeed, 0.128)));
+        assert_eq!(held.slip_wheel(), None);
+        assert_eq!(held.slip_lead(), Some(2));
+        assert_eq!(
+            slip(0.004, Some((2, FollowQuantity::WheelSpeed, 0.1))).slip_lead(),
+            Some(1)
+        );
+        let text = held.to_string();
+        assert!(
+            text.contains("wheel 3's wheel speed has been outside its following window for 128 ms"),
+            "{text}"
+        );
+
+        let unknown = FaultReason::Slip {
+            residual: 0.12,
+            suspect: None,
+            behind: None,
+        };
+        assert_eq!(unknown.slip_wheel(), None);
+        assert!(
+            unknown.to_string().contains("check the wheels"),
+            "{unknown}"
+        );
+    }
+
+    #[test]
+    fn the_slip_fault_reports_the_drive_longest_outside_its_window() {
+        let (p, mut s) = tracking();
+        let mut inp = healthy();
+        inp.enabled = [true; MAX_WHEELS];
+        let mut c = Command::zero(4);
+        for w in c.wheels.iter_mut().take(4) {
+            w.wheel_speed = 5.0;
+        }
+        // Every rolling drive follows 5 rad/s for 0.4 s (longer than the following check's
+        // lag) …
+        for i in 0..4 {
+            inp.wheel_speed[i] = 5.0;
+        }
+        for _ in 0..100 {
+            s.step(&p, &inp, false);
+            s.note_command(&c, &[true; MAX_WHEELS]);
+        }
+        assert_eq!(s.state(), SupervisorState::Tracking);
+        // … then wheel 3's measures 0, and the wheels disagree beyond the slip threshold: the
+        // slip fault comes first (25 cycles, before the following error's 0.2 s).
+        inp.wheel_speed[2] = 0.0;
+        inp.slip_residual = 0.5;
+        let mut reason = None;
+        for _ in 0..SupervisorConfig::default().slip_cycles {
+            s.step(&p, &inp, false);
+            reason = s.reason();
+            s.note_command(&c, &[true; MAX_WHEELS]);
+        }
+        match reason {
+            Some(FaultReason::Slip {
+                behind: Some((2, FollowQuantity::WheelSpeed, t)),
+                ..
+            }) => assert!(t > 0.0 && t < 0.2, "{t}"),
+            r => panic!("expected a slip fault with wheel 3's drive behind, got {r:?}"),
+        }
     }
 
     #[test]

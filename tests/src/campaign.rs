@@ -835,13 +835,19 @@ pub fn leg_end_stop() -> CaseResult {
     o.sim_platform = Some(sp);
     let (mut c, t, _) = scheduled(
         "leg at its end stop (node 1 blocked at 0.50 m, file says 0.56 m)",
-        "a blocked leg makes the wheels fight: the odometry residual rises; residual > 0.05 m/s for 25 cycles → slip fault, controlled stop",
+        "a blocked leg makes the wheels fight: the odometry residual rises; residual > 0.05 m/s for 25 cycles → slip fault naming wheel 1, controlled stop",
         &o,
         0.0,
         40.0,
     );
     let p = Platform::justin();
     c.check(t.fault.is_some(), "not detected");
+    if let Some((_, _, r)) = t.fault {
+        c.check(
+            r.and_then(|r| r.slip_wheel()) == Some(0),
+            format!("expected a slip fault naming wheel 1, got {r:?}"),
+        );
+    }
     c.check(
         t.fault.is_none() || t.controlled_stop(&p),
         "not a controlled stop",
@@ -852,12 +858,12 @@ pub fn leg_end_stop() -> CaseResult {
     c
 }
 
-/// Wheel 2 slips: its encoder reports a spin 30 % faster than the ground moves from 8 s
+/// Wheel 2 slips: its encoder reports a spin 2× faster than the ground moves from 8 s
 /// (FEEDBACK_A altered in flight, CRC and counter valid).
 pub fn wheel_slip() -> CaseResult {
     let mut c = CaseResult::new(
         "wheel slipping (node 2 spins 2× faster than the ground, from 8 s)",
-        "odometry least-squares residual > 0.05 m/s for 25 consecutive cycles → slip fault, controlled stop",
+        "odometry least-squares residual > 0.05 m/s for 25 consecutive cycles → slip fault naming wheel 2, controlled stop",
     );
     let o = RigOptions::new(Scenario::Seed000);
     let Ok(mut rig) = Rig::new(&o) else {
@@ -895,11 +901,14 @@ pub fn wheel_slip() -> CaseResult {
     }
     let p = Platform::justin();
     match t.fault {
-        Some((_, time, Some(r @ FaultReason::Slip { .. }))) => {
+        Some((_, time, Some(r @ FaultReason::Slip { .. }))) if r.slip_wheel() == Some(1) => {
             c.detection = ms(((time - 8.0) / p.dt()).round() as u64, &p);
             c.outcome = format!("controlled stop, latched: {r}");
         }
-        f => c.check(false, format!("expected a slip fault, got {f:?}")),
+        f => c.check(
+            false,
+            format!("expected a slip fault naming wheel 2, got {f:?}"),
+        ),
     }
     c.check(t.controlled_stop(&p), "not a controlled stop");
     c.data_lost = "rest of trajectory".into();

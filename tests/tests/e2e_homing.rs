@@ -524,6 +524,19 @@ fn an_uncompensated_mirrored_motor_is_caught_before_the_base_drives_off() {
             matches!(f.reason, Some(FaultReason::Slip { .. })),
             "node {node}: {text}"
         );
+        // The slip points at wheel 2, whose motor is mirrored, or at no wheel; never at
+        // another one. The mirrored rolling motor leaves wheel 2 alone disagreeing with the
+        // others. The mirrored steering turns wheel 2 the wrong way while its encoder reads
+        // what was commanded: the simulated base moves as the least-squares compromise of all
+        // its wheels, so every wheel's reading disagrees a little, and no drive is outside
+        // its following window.
+        let lead = f.reason.and_then(|r| r.slip_lead());
+        let expected = if node == 3 {
+            vec![Some(1)]
+        } else {
+            vec![Some(1), None]
+        };
+        assert!(expected.contains(&lead), "node {node}: {text}");
         // Stopped within 10 cm of the path (seed 000 runs 4.5 m each way).
         assert!(
             out.summary.max_position_error_m < 0.1,

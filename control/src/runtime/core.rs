@@ -1535,6 +1535,7 @@ impl CycleCore {
             bus_error: self.bus_error,
             bus_off: self.bus_off,
             slip_residual: odo.residual,
+            slip_suspect: odo.suspect,
             stop_requested,
             ..Default::default()
         };
