@@ -71,6 +71,7 @@
 
 use crate::{build_live, LiveOptions, RunOptions, RunOutcome};
 use rollbase_control::reference::limits::Violation;
+use rollbase_control::reference::shaper::Shaper;
 use rollbase_control::reference::timescale::{ScaledTrajectory, TimeScaleConfig};
 use rollbase_control::reference::trajectory::{QuinticSpline, Trajectory, WaypointSpec};
 use rollbase_control::runtime::record::CycleRecord;
@@ -257,6 +258,39 @@ pub fn feasible_path_length(cmds: &[CommandEvent], timeout: f64, p: &Platform) -
         })
         .collect();
     ideal_path_length(&scaled, timeout)
+}
+
+/// Feeds a command stream to the live shaper alone (no bus, no plant), one step per cycle
+/// of `dt` for `until` seconds: each motion command as it falls due, anything else as a
+/// stop ([`Shaper::halt_for`]). After every step, `each(t, shaper, asked)` sees the shaper
+/// and the twist last asked for (zero after a stop).
+pub fn drive_shaper(
+    shaper: &mut Shaper,
+    cmds: &[CommandEvent],
+    dt: f64,
+    until: f64,
+    mut each: impl FnMut(f64, &Shaper, Twist),
+) {
+    let (mut k, mut t) = (0usize, 0.0f64);
+    let mut asked = Twist::default();
+    while t < until {
+        while k < cmds.len() && cmds[k].t <= t + 1e-9 {
+            match cmds[k].kind {
+                CommandKind::Motion(m) => {
+                    shaper.command(m.twist, None);
+                    asked = m.twist;
+                }
+                _ => {
+                    shaper.halt_for(Limiting::Stop);
+                    asked = Twist::default();
+                }
+            }
+            k += 1;
+        }
+        shaper.step();
+        each(t, shaper, asked);
+        t += dt;
+    }
 }
 
 // ---------------------------------------------------------------------------------------

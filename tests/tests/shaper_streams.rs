@@ -15,9 +15,8 @@
 //!   the closed loop on one session; the shaper alone is its upper bound.
 
 use rollbase_control::reference::shaper::{Shaper, ShaperConfig};
-use rollbase_control::service::ports::{CommandKind, Limiting};
 use rollbase_control::Platform;
-use rollbase_tests::flow::{ideal_path_length, joystick_session, RELEASE_S};
+use rollbase_tests::flow::{drive_shaper, ideal_path_length, joystick_session, RELEASE_S};
 
 /// The sessions' sticks.
 const SEEDS: [u64; 8] = [23, 1, 2, 3, 4, 5, 6, 7];
@@ -45,32 +44,20 @@ fn session(p: &Platform, seed: u64, sigma: f64) -> (f64, f64) {
     let ideal = ideal_path_length(&cmds, p.service.command_timeout);
     let mut s = Shaper::new(p, ShaperConfig::default());
     let dt = p.dt();
-    let (mut k, mut t, mut path) = (0usize, 0.0f64, 0.0f64);
-    let mut asked = 0.0f64;
+    let mut path = 0.0f64;
     let (mut creep, mut longest) = (0.0f64, 0.0f64);
-    while t < SESSION_S + RELEASE_S + 0.5 {
-        while k < cmds.len() && cmds[k].t <= t + 1e-9 {
-            match cmds[k].kind {
-                CommandKind::Motion(m) => {
-                    s.command(m.twist, None);
-                    asked = m.twist.vx.hypot(m.twist.vy);
-                }
-                _ => s.halt_for(Limiting::Stop),
-            }
-            k += 1;
-        }
-        s.step();
+    let until = SESSION_S + RELEASE_S + 0.5;
+    drive_shaper(&mut s, &cmds, dt, until, |_, s, asked| {
         let q = s.velocity();
         let v = q[0].hypot(q[1]);
         path += v * dt;
-        if asked >= ASKED && v < CREEP {
+        if asked.vx.hypot(asked.vy) >= ASKED && v < CREEP {
             creep += dt;
             longest = longest.max(creep);
         } else {
             creep = 0.0;
         }
-        t += dt;
-    }
+    });
     (path / ideal, longest)
 }
 

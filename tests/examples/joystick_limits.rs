@@ -1,0 +1,169 @@
+//! How far can the live shaper get on issue 23's noise-free joystick, and what holds it back?
+//! Runs the eight noise-free sticks of `tests/tests/shaper_streams.rs` (20 s each) through the
+//! shaper alone and prints the mean path as a share of the ideal execution's
+//! ([`ideal_path_length`]: every message's twist held exactly), against:
+//!
+//! - **steering-free bounds**: the twist moves straight towards the command (capped to the
+//!   wheel speed, one factor, direction kept), each cycle as far as the wheels' acceleration
+//!   allows, and nothing else: no steering limit, no alignment. What any shaper within those
+//!   two limits can travel at most while following the stick (it never moves faster than
+//!   the stick asks);
+//! - **the shaper with Justin's steering limits scaled** (rate and acceleration together,
+//!   ×1 to ×10), with its margins as configured and with them removed (acceleration share
+//!   1.0, speed share 0.97, lateral acceleration 20 m/s²);
+//! - **where the default shaper's shortfall goes**: each cycle's (asked speed − reference
+//!   speed) booked under the limit the shaper reports as binding.
+//!
+//! `cargo run --release -p rollbase-tests --example joystick_limits` (about a second).
+
+use rollbase_control::reference::shaper::{Shaper, ShaperConfig};
+use rollbase_control::service::ports::{CommandEvent, CommandKind};
+use rollbase_control::Platform;
+use rollbase_tests::flow::{drive_shaper, ideal_path_length, joystick_session, RELEASE_S};
+use std::collections::BTreeMap;
+
+/// The sticks of `tests/tests/shaper_streams.rs`.
+const SEEDS: [u64; 8] = [23, 1, 2, 3, 4, 5, 6, 7];
+/// Length of each session (s).
+const SESSION_S: f64 = 20.0;
+
+fn sessions() -> Vec<Vec<CommandEvent>> {
+    SEEDS
+        .iter()
+        .map(|&s| joystick_session(s, SESSION_S, 0.0))
+        .collect()
+}
+
+fn until() -> f64 {
+    SESSION_S + RELEASE_S + 0.5
+}
+
+/// Largest contact speed (m/s) of a twist q = (v_x, v_y, ω) over the wheels, legs nominal.
+fn fastest_wheel(p: &Platform, q: [f64; 3]) -> f64 {
+    p.wheels
+        .iter()
+        .map(|w| {
+            let (sa, ca) = w.alpha.sin_cos();
+            let l = w.lambda_nominal;
+            (q[0] - q[2] * l * sa).hypot(q[1] + q[2] * l * ca)
+        })
+        .fold(0.0, f64::max)
+}
+
+/// Mean path share of the steering-free follower (module docs) with the given shares of
+/// the wheel acceleration and speed limits.
+fn steering_free(p: &Platform, cmds: &[Vec<CommandEvent>], accel: f64, speed: f64) -> f64 {
+    let dt = p.dt();
+    let amax = accel * p.limits.wheel_accel * p.wheel_radius;
+    let vmax = speed * p.limits.wheel_speed * p.wheel_radius;
+    let mut mean = 0.0;
+    for c in cmds {
+        let ideal = ideal_path_length(c, p.service.command_timeout);
+        let (mut k, mut t, mut path) = (0usize, 0.0f64, 0.0f64);
+        let (mut q, mut goal) = ([0.0f64; 3], [0.0f64; 3]);
+        while t < until() {
+            while k < c.len() && c[k].t <= t + 1e-9 {
+                goal = match c[k].kind {
+                    CommandKind::Motion(m) => [m.twist.vx, m.twist.vy, m.twist.omega],
+                    _ => [0.0; 3],
+                };
+                k += 1;
+            }
+            let cap = fastest_wheel(p, goal);
+            let g = goal.map(|x| if cap > vmax { x * vmax / cap } else { x });
+            let d = [g[0] - q[0], g[1] - q[1], g[2] - q[2]];
+            let step = fastest_wheel(p, d);
+            let f = if step > amax * dt {
+                amax * dt / step
+            } else {
+                1.0
+            };
+            for i in 0..3 {
+                q[i] += f * d[i];
+            }
+            path += q[0].hypot(q[1]) * dt;
+            t += dt;
+        }
+        mean += path / ideal / cmds.len() as f64;
+    }
+    mean
+}
+
+/// Mean path share of the shaper, and the shortfall (share of the ideal path, summed over
+/// the sessions' means) and time (s, summed) per binding limit.
+fn shaper(
+    p: &Platform,
+    cfg: ShaperConfig,
+    cmds: &[Vec<CommandEvent>],
+) -> (f64, BTreeMap<&'static str, (f64, f64)>) {
+    let dt = p.dt();
+    let mut mean = 0.0;
+    let mut by: BTreeMap<&'static str, (f64, f64)> = BTreeMap::new();
+    for c in cmds {
+        let ideal = ideal_path_length(c, p.service.command_timeout);
+        let n = cmds.len() as f64;
+        let mut path = 0.0;
+        let mut s = Shaper::new(p, cfg);
+        drive_shaper(&mut s, c, dt, until(), |_, s, asked| {
+            let q = s.velocity();
+            let v = q[0].hypot(q[1]);
+            path += v * dt;
+            let e = by.entry(s.status().limiting.name()).or_default();
+            e.0 += (asked.vx.hypot(asked.vy) - v) * dt / ideal / n;
+            e.1 += dt;
+        });
+        mean += path / ideal / n;
+    }
+    (mean, by)
+}
+
+fn main() {
+    let cmds = sessions();
+    let justin = Platform::justin();
+    println!(
+        "Issue 23's noise-free joystick, {} sticks of {SESSION_S} s: mean path, % of the ideal \
+         execution's",
+        SEEDS.len()
+    );
+    println!();
+    println!("steering-free bound (wheel acceleration and speed only):");
+    for (a, v) in [(0.6, 0.9), (1.0, 0.9), (1.0, 1.0)] {
+        println!(
+            "  acceleration share {a:.1}, speed share {v:.2}: {:5.1} %",
+            100.0 * steering_free(&justin, &cmds, a, v)
+        );
+    }
+    println!();
+    let default = ShaperConfig::default();
+    let bare = ShaperConfig {
+        accel_fraction: 1.0,
+        speed_fraction: 0.97,
+        lateral_accel: 20.0,
+        ..default
+    };
+    println!(
+        "the shaper, Justin's steering limits ({} rad/s, {} rad/s²) scaled:",
+        justin.limits.steer_rate, justin.limits.steer_accel
+    );
+    println!("  scale   margins as configured   margins removed");
+    for scale in [1.0, 2.0, 4.0, 10.0] {
+        let mut p = justin.clone();
+        p.limits.steer_rate *= scale;
+        p.limits.steer_accel *= scale;
+        println!(
+            "  ×{scale:<4}  {:21.1} %  {:14.1} %",
+            100.0 * shaper(&p, default, &cmds).0,
+            100.0 * shaper(&p, bare, &cmds).0
+        );
+    }
+    println!();
+    let (mean, by) = shaper(&justin, default, &cmds);
+    println!(
+        "where the shaper's shortfall goes ({:.1} % travelled; points of the ideal path, time \
+         summed over the sessions):",
+        100.0 * mean
+    );
+    for (limit, (loss, time)) in by {
+        println!("  {limit:22} {:5.1} points  {time:6.1} s", 100.0 * loss);
+    }
+}
