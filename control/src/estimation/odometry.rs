@@ -111,7 +111,14 @@ pub fn twist_from_wheels(
     legs: &[f64; MAX_WHEELS],
     leg_rates: &[f64; MAX_WHEELS],
 ) -> Option<(Twist, f64)> {
-    solve(p, n, w, legs, leg_rates).map(|s| (s.twist, s.rms))
+    let r = Readings {
+        n,
+        w: *w,
+        legs: *legs,
+        leg_rates: *leg_rates,
+        steer: [None; MAX_WHEELS],
+    };
+    solve(p, &r, None).map(|s| (s.twist, s.rms))
 }
 
 /// The least-squares solution with what its covariance needs.
@@ -144,25 +151,15 @@ fn offset_rows(
     Some((c, [-d * rate * s, d * rate * co]))
 }
 
-fn solve(
-    p: &Platform,
+/// One cycle's readings as the least-squares system takes them: per wheel its contact
+/// velocity (body frame), leg, leg rate and, for an off-centred wheel, its steering angle and
+/// rate.
+struct Readings {
     n: usize,
-    w: &[[f64; 2]; MAX_WHEELS],
-    legs: &[f64; MAX_WHEELS],
-    leg_rates: &[f64; MAX_WHEELS],
-) -> Option<Solution> {
-    solve_with(p, n, w, legs, leg_rates, &[None; MAX_WHEELS])
-}
-
-fn solve_with(
-    p: &Platform,
-    n: usize,
-    w: &[[f64; 2]; MAX_WHEELS],
-    legs: &[f64; MAX_WHEELS],
-    leg_rates: &[f64; MAX_WHEELS],
-    steer: &[Option<(f64, f64)>; MAX_WHEELS],
-) -> Option<Solution> {
-    solve_without(p, n, w, legs, leg_rates, steer, None)
+    w: [[f64; 2]; MAX_WHEELS],
+    legs: [f64; MAX_WHEELS],
+    leg_rates: [f64; MAX_WHEELS],
+    steer: [Option<(f64, f64)>; MAX_WHEELS],
 }
 
 /// A wheel's rows of the least-squares system: (A_i as two rows, b_i).
@@ -184,27 +181,21 @@ fn rows(
     )
 }
 
-/// The least-squares solution over the first `n` wheels but `skip`.
-fn solve_without(
-    p: &Platform,
-    n: usize,
-    w: &[[f64; 2]; MAX_WHEELS],
-    legs: &[f64; MAX_WHEELS],
-    leg_rates: &[f64; MAX_WHEELS],
-    steer: &[Option<(f64, f64)>; MAX_WHEELS],
-    skip: Option<usize>,
-) -> Option<Solution> {
-    let used = |i: usize| Some(i) != skip;
+/// The least-squares solution over the readings' wheels but `skip`.
+fn solve(p: &Platform, r: &Readings, skip: Option<usize>) -> Option<Solution> {
+    // The rows of the wheels used, built once for the solve and the residual.
+    let mut sys = [([Vector3::<f64>::zeros(); 2], [0.0; 2]); MAX_WHEELS];
+    let mut count = 0usize;
+    for (i, wc) in p.wheels.iter().enumerate().take(r.n) {
+        if Some(i) != skip {
+            sys[count] = rows(wc, r.w[i], r.legs[i], r.leg_rates[i], r.steer[i]);
+            count += 1;
+        }
+    }
+    let sys = &sys[..count];
     let mut ata = Matrix3::<f64>::zeros();
     let mut atb = Vector3::<f64>::zeros();
-    for (i, wc) in p
-        .wheels
-        .iter()
-        .enumerate()
-        .take(n)
-        .filter(|(i, _)| used(*i))
-    {
-        let (a, b) = rows(wc, w[i], legs[i], leg_rates[i], steer[i]);
+    for (a, b) in sys {
         ata += a[0] * a[0].transpose() + a[1] * a[1].transpose();
         atb += a[0] * b[0] + a[1] * b[1];
     }
@@ -212,19 +203,10 @@ fn solve_without(
     if !x.iter().all(|v| v.is_finite()) {
         return None;
     }
-    let mut sq = 0.0;
-    let mut count = 0usize;
-    for (i, wc) in p
-        .wheels
+    let sq: f64 = sys
         .iter()
-        .enumerate()
-        .take(n)
-        .filter(|(i, _)| used(*i))
-    {
-        let (a, b) = rows(wc, w[i], legs[i], leg_rates[i], steer[i]);
-        sq += (a[0].dot(&x) - b[0]).powi(2) + (a[1].dot(&x) - b[1]).powi(2);
-        count += 1;
-    }
+        .map(|(a, b)| (a[0].dot(&x) - b[0]).powi(2) + (a[1].dot(&x) - b[1]).powi(2))
+        .sum();
     Some(Solution {
         twist: Twist {
             vx: x[0],
@@ -251,27 +233,21 @@ pub struct SlipSuspect {
 
 /// Leave-one-out over the wheels (module docs, "Which wheel slips"); `None` for fewer than
 /// three wheels or where no fit without a wheel is solvable.
-fn slip_suspect(
-    p: &Platform,
-    n: usize,
-    w: &[[f64; 2]; MAX_WHEELS],
-    legs: &[f64; MAX_WHEELS],
-    leg_rates: &[f64; MAX_WHEELS],
-    steer: &[Option<(f64, f64)>; MAX_WHEELS],
-) -> Option<SlipSuspect> {
+fn slip_suspect(p: &Platform, r: &Readings) -> Option<SlipSuspect> {
+    let n = r.n;
     if n < 3 {
         return None;
     }
     let mut best: Option<SlipSuspect> = None;
     for k in 0..n {
-        let Some(sol) = solve_without(p, n, w, legs, leg_rates, steer, Some(k)) else {
+        let Some(sol) = solve(p, r, Some(k)) else {
             continue;
         };
         if best.is_some_and(|b| b.others <= sol.rms) {
             continue;
         }
         let x = Vector3::new(sol.twist.vx, sol.twist.vy, sol.twist.omega);
-        let (a, b) = rows(&p.wheels[k], w[k], legs[k], leg_rates[k], steer[k]);
+        let (a, b) = rows(&p.wheels[k], r.w[k], r.legs[k], r.leg_rates[k], r.steer[k]);
         best = Some(SlipSuspect {
             wheel: k,
             off: (a[0].dot(&x) - b[0]).hypot(a[1].dot(&x) - b[1]),
@@ -364,11 +340,14 @@ impl Odometry {
     /// pose unchanged (the output then carries a zero twist and an infinite residual).
     pub fn update(&mut self, p: &Platform, m: &Measurement, dt: f64) -> OdometryOutput {
         let n = p.n().min(m.n).min(MAX_WHEELS);
-        let mut w = [[0.0; 2]; MAX_WHEELS];
-        let mut legs = [0.0; MAX_WHEELS];
-        let mut rates = [0.0; MAX_WHEELS];
+        let mut r = Readings {
+            n,
+            w: [[0.0; 2]; MAX_WHEELS],
+            legs: [0.0; MAX_WHEELS],
+            leg_rates: [0.0; MAX_WHEELS],
+            steer: [None; MAX_WHEELS],
+        };
         let dtc = if dt.is_finite() && dt > 0.0 { dt } else { 0.0 };
-        let mut steer = [None; MAX_WHEELS];
         let mut ok = n >= 2 && dtc > 0.0;
         let back = match self.sampling {
             Sampling::Continuous => 0.0,
@@ -378,23 +357,19 @@ impl Odometry {
             let wm = &m.wheels[i];
             let phi = wm.steer_angle - back * wm.steer_rate;
             let v = p.wheel_radius * wm.wheel_speed;
-            w[i] = [v * phi.cos(), v * phi.sin()];
-            legs[i] = wm.leg - back * wm.leg_rate;
-            rates[i] = wm.leg_rate;
+            r.w[i] = [v * phi.cos(), v * phi.sin()];
+            r.legs[i] = wm.leg - back * wm.leg_rate;
+            r.leg_rates[i] = wm.leg_rate;
             if p.wheels[i].off_centred() {
-                steer[i] = Some((phi, wm.steer_rate));
+                r.steer[i] = Some((phi, wm.steer_rate));
                 ok &= wm.steer_rate.is_finite();
             }
-            ok &= w[i][0].is_finite()
-                && w[i][1].is_finite()
-                && legs[i].is_finite()
-                && rates[i].is_finite();
+            ok &= r.w[i][0].is_finite()
+                && r.w[i][1].is_finite()
+                && r.legs[i].is_finite()
+                && r.leg_rates[i].is_finite();
         }
-        let solved = if ok {
-            solve_with(p, n, &w, &legs, &rates, &steer)
-        } else {
-            None
-        };
+        let solved = if ok { solve(p, &r, None) } else { None };
         let Some(sol) = solved else {
             return OdometryOutput {
                 pose: self.pose,
@@ -409,7 +384,7 @@ impl Odometry {
         let (tw, residual) = (sol.twist, sol.rms);
         // Twist covariance σ² (AᵀA)⁻¹ (module docs, "Uncertainty").
         let mut umax = 0.0f64;
-        for wi in w.iter().take(n) {
+        for wi in r.w.iter().take(n) {
             umax = umax.max(wi[0].hypot(wi[1]));
         }
         let q = self.resolution;
@@ -452,7 +427,7 @@ impl Odometry {
                 omega: tw.omega,
             },
             residual,
-            suspect: slip_suspect(p, n, &w, &legs, &rates, &steer),
+            suspect: slip_suspect(p, &r),
         }
     }
 }
