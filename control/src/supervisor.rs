@@ -716,9 +716,9 @@ pub struct SupervisorInput {
     pub bus_off: Option<u8>,
     /// Odometry slip residual (m/s).
     pub slip_residual: f64,
-    /// The wheel the residual most likely comes from ([`OdometryOutput::suspect`]).
-    ///
-    /// [`OdometryOutput::suspect`]: crate::estimation::odometry::OdometryOutput::suspect
+    /// The wheel the residual most likely comes from
+    /// ([`crate::estimation::odometry::Odometry::slip_suspect`]); the runtime fills it in
+    /// only while the residual is above `slip_threshold`.
     pub slip_suspect: Option<SlipSuspect>,
     /// An operator stop was requested (Ctrl-C): controlled stop, not a fault.
     pub stop_requested: bool,

@@ -65,8 +65,10 @@
 //! matrix, so the slipping wheel keeps only part of its own error and the others take the
 //! rest; on Justin's four wheels the largest residual is not always the slipping wheel's.
 //! The odometry therefore also fits the twist without each wheel k in turn (leave-one-out:
-//! n more 3×3 solves a cycle, 2(n − 1) ≥ 4 equations in 3 unknowns for n ≥ 3) and names
-//! the wheel whose removal leaves the others most consistent ([`SlipSuspect`]). If only
+//! n more 3×3 solves, 2(n − 1) ≥ 4 equations in 3 unknowns for n ≥ 3, done on request,
+//! [`Odometry::slip_suspect`], which the runtime makes only while the residual is above the
+//! slip threshold) and names the wheel whose removal leaves the others most consistent
+//! ([`SlipSuspect`]). If only
 //! wheel k is wrong, the others fit exactly (their RMS mismatch is the encoders' and the
 //! drives' momentary lag), and wheel k's distance from what that fit gives it is e itself,
 //! undiluted: a wheel spinning 0.1 m/s faster than the ground under it is 0.1 m/s off. If
@@ -96,9 +98,6 @@ pub struct OdometryOutput {
     pub twist_world: Twist,
     /// RMS per-wheel velocity mismatch (m/s): the slip indicator.
     pub residual: f64,
-    /// The wheel the mismatch most likely comes from (module docs, "Which wheel slips");
-    /// `None` with fewer than three wheels or without a valid reading.
-    pub suspect: Option<SlipSuspect>,
 }
 
 /// Least-squares body twist and RMS residual from wheel contact velocities `w` (body
@@ -154,6 +153,7 @@ fn offset_rows(
 /// One cycle's readings as the least-squares system takes them: per wheel its contact
 /// velocity (body frame), leg, leg rate and, for an off-centred wheel, its steering angle and
 /// rate.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 struct Readings {
     n: usize,
     w: [[f64; 2]; MAX_WHEELS],
@@ -294,6 +294,8 @@ pub struct Odometry {
     prev: Option<Twist>,
     resolution: EncoderResolution,
     pose_cov: Matrix3<f64>,
+    /// The last update's readings, when they were valid ([`Odometry::slip_suspect`]).
+    last: Option<Readings>,
 }
 
 impl Odometry {
@@ -310,6 +312,7 @@ impl Odometry {
             prev: None,
             resolution: EncoderResolution::default(),
             pose_cov: Matrix3::zeros(),
+            last: None,
         }
     }
 
@@ -321,6 +324,14 @@ impl Odometry {
     /// The pose covariance accumulated so far.
     pub fn pose_covariance(&self) -> [[f64; 3]; 3] {
         to_array(&self.pose_cov)
+    }
+
+    /// The wheel the last update's residual most likely comes from (module docs, "Which
+    /// wheel slips"): n more least-squares solves, so the runtime asks only once the
+    /// residual is above the slip threshold. `None` with fewer than three wheels, or when the
+    /// last readings were not valid.
+    pub fn slip_suspect(&self, p: &Platform) -> Option<SlipSuspect> {
+        self.last.as_ref().and_then(|r| slip_suspect(p, r))
     }
 
     /// Current pose estimate.
@@ -370,13 +381,13 @@ impl Odometry {
                 && r.leg_rates[i].is_finite();
         }
         let solved = if ok { solve(p, &r, None) } else { None };
+        self.last = solved.as_ref().map(|_| r);
         let Some(sol) = solved else {
             return OdometryOutput {
                 pose: self.pose,
                 twist_body: Twist::default(),
                 twist_world: Twist::default(),
                 residual: f64::INFINITY,
-                suspect: None,
                 pose_covariance: to_array(&self.pose_cov),
                 twist_covariance: [[f64::INFINITY; 3]; 3],
             };
@@ -427,7 +438,6 @@ impl Odometry {
                 omega: tw.omega,
             },
             residual,
-            suspect: slip_suspect(p, &r),
         }
     }
 }
@@ -525,8 +535,9 @@ mod tests {
             let mut m = consistent_measurement(&p, tw, legs, [0.0; 4]);
             // wheel k spins 0.08 m/s faster than the ground moves under it
             m.wheels[k].wheel_speed += 0.08 / p.wheel_radius;
-            let out = Odometry::new(Pose::default()).update(&p, &m, 0.004);
-            let s = out.suspect.expect("four wheels: a suspect");
+            let mut o = Odometry::new(Pose::default());
+            o.update(&p, &m, 0.004);
+            let s = o.slip_suspect(&p).expect("four wheels: a suspect");
             assert_eq!(s.wheel, k, "{s:?}");
             assert!((s.off - 0.08).abs() < 1e-9, "wheel {k}: off {}", s.off);
             assert!(s.others < 1e-9, "wheel {k}: others {}", s.others);
@@ -544,8 +555,9 @@ mod tests {
         let mut m = consistent_measurement(&p, tw, [0.45; 4], [0.0; 4]);
         m.wheels[0].wheel_speed += 0.1 / p.wheel_radius;
         m.wheels[2].steer_angle += 0.3;
-        let out = Odometry::new(Pose::default()).update(&p, &m, 0.004);
-        let s = out.suspect.expect("a suspect");
+        let mut o = Odometry::new(Pose::default());
+        o.update(&p, &m, 0.004);
+        let s = o.slip_suspect(&p).expect("a suspect");
         // without either wrong wheel the other one still disagrees with the remaining two
         assert!(
             s.others > crate::supervisor::SLIP_SINGLE_WHEEL * s.off,
@@ -582,8 +594,13 @@ mod tests {
             }
         );
         assert!(out.residual.is_infinite());
+        // Nothing to name from a reading that was not valid, even after a valid one.
+        m.wheels[1].wheel_speed = 0.1 / p.wheel_radius;
+        o.update(&p, &m, 0.004);
+        assert!(o.slip_suspect(&p).is_some());
         let out = o.update(&p, &Measurement::default(), 0.004);
         assert!(out.residual.is_infinite());
+        assert!(o.slip_suspect(&p).is_none());
     }
 
     /// Heading and turn rate of the test motion: ω ramps from 0 to 0.31 rad/s over 2 s.

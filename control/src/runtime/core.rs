@@ -1535,7 +1535,12 @@ impl CycleCore {
             bus_error: self.bus_error,
             bus_off: self.bus_off,
             slip_residual: odo.residual,
-            slip_suspect: odo.suspect,
+            // The leave-one-out fits only once the residual is above the threshold.
+            slip_suspect: if odo.residual > self.sup.config().slip_threshold {
+                self.odom.slip_suspect(&self.platform)
+            } else {
+                None
+            },
             stop_requested,
             ..Default::default()
         };
