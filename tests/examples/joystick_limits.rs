@@ -118,22 +118,33 @@ fn shaper(
 }
 
 fn main() {
+    use std::fmt::Write as _;
+    use std::io::Write as _;
+    let mut out = String::new();
     let cmds = sessions();
     let justin = Platform::justin();
-    println!(
+    writeln!(
+        out,
         "Issue 23's noise-free joystick, {} sticks of {SESSION_S} s: mean path, % of the ideal \
          execution's",
         SEEDS.len()
-    );
-    println!();
-    println!("steering-free bound (wheel acceleration and speed only):");
+    )
+    .ok();
+    writeln!(out).ok();
+    writeln!(
+        out,
+        "steering-free bound (wheel acceleration and speed only):"
+    )
+    .ok();
     for (a, v) in [(0.6, 0.9), (1.0, 0.9), (1.0, 1.0)] {
-        println!(
+        writeln!(
+            out,
             "  acceleration share {a:.1}, speed share {v:.2}: {:5.1} %",
             100.0 * steering_free(&justin, &cmds, a, v)
-        );
+        )
+        .ok();
     }
-    println!();
+    writeln!(out).ok();
     let default = ShaperConfig::default();
     let bare = ShaperConfig {
         accel_fraction: 1.0,
@@ -141,29 +152,42 @@ fn main() {
         lateral_accel: 20.0,
         ..default
     };
-    println!(
+    writeln!(
+        out,
         "the shaper, Justin's steering limits ({} rad/s, {} rad/s²) scaled:",
         justin.limits.steer_rate, justin.limits.steer_accel
-    );
-    println!("  scale   margins as configured   margins removed");
+    )
+    .ok();
+    writeln!(out, "  scale   margins as configured   margins removed").ok();
     for scale in [1.0, 2.0, 4.0, 10.0] {
         let mut p = justin.clone();
         p.limits.steer_rate *= scale;
         p.limits.steer_accel *= scale;
-        println!(
+        writeln!(
+            out,
             "  ×{scale:<4}  {:21.1} %  {:14.1} %",
             100.0 * shaper(&p, default, &cmds).0,
             100.0 * shaper(&p, bare, &cmds).0
-        );
+        )
+        .ok();
     }
-    println!();
+    writeln!(out).ok();
     let (mean, by) = shaper(&justin, default, &cmds);
-    println!(
+    writeln!(
+        out,
         "where the shaper's shortfall goes ({:.1} % travelled; points of the ideal path, time \
          summed over the sessions):",
         100.0 * mean
-    );
+    )
+    .ok();
     for (limit, (loss, time)) in by {
-        println!("  {limit:22} {:5.1} points  {time:6.1} s", 100.0 * loss);
+        writeln!(
+            out,
+            "  {limit:22} {:5.1} points  {time:6.1} s",
+            100.0 * loss
+        )
+        .ok();
     }
+    // A closed pipe (`| head`) is not an error here.
+    let _ = std::io::stdout().write_all(out.as_bytes());
 }
