@@ -339,15 +339,22 @@ impl std::fmt::Display for FaultReason {
                         off = s.off,
                         others = s.others
                     ),
-                    Some(s) => {
-                        write!(
-                            f,
-                            "; no single wheel explains it (without any one of them the others \
-                             still disagree by {others:.3} m/s or more): several wheels \
-                             slipping, a drive not following its command while the others drag \
-                             its wheel, or a leg against its end stop",
-                            others = s.others
-                        )?;
+                    _ => {
+                        match suspect {
+                            Some(s) => write!(
+                                f,
+                                "; no single wheel explains it (without any one of them the \
+                                 others still disagree by {others:.3} m/s or more): several \
+                                 wheels slipping, a drive not following its command while the \
+                                 others drag its wheel, or a leg against its end stop",
+                                others = s.others
+                            )?,
+                            None => write!(
+                                f,
+                                ": a wheel slipping or held, a leg against its end stop, or a \
+                                 drive not following its command"
+                            )?,
+                        }
                         if let Some((w, q, t)) = behind {
                             write!(
                                 f,
@@ -362,12 +369,6 @@ impl std::fmt::Display for FaultReason {
                             "; check the wheels, the floor, the legs and the drives, then re-arm"
                         )
                     }
-                    None => write!(
-                        f,
-                        ": a wheel slipping or held, a leg against its end stop, a drive not \
-                         following its command; check the wheels, the floor, the legs and the \
-                         drives, then re-arm"
-                    ),
                 }
             }
             Self::AlignmentTimeout { error } => write!(
@@ -1434,6 +1435,20 @@ mod tests {
         assert!(
             unknown.to_string().contains("check the wheels"),
             "{unknown}"
+        );
+        // Without a suspect (a two-wheel base), the drive behind is still named.
+        let two = FaultReason::Slip {
+            residual: 0.12,
+            suspect: None,
+            behind: Some((1, FollowQuantity::SteerRate, 0.06)),
+        };
+        assert_eq!(two.slip_lead(), Some(1));
+        let text = two.to_string();
+        assert!(
+            text.contains(
+                "wheel 2's steering rate has been outside its following window for 60 ms"
+            ),
+            "{text}"
         );
     }
 
