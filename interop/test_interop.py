@@ -185,15 +185,17 @@ def connect(host: str, port: int) -> can.BusABC:
     return can.Bus(interface="socketcand", host=host, port=port, channel="vcan0", tcp_tune=True)
 
 
-def test_python_can_socketcand_client_sees_a_realtime_run(tmp_path, procs, bridge, dbc_db):
-    host, port, _ = bridge
+def socketcand_realtime_attempt(tmp_path, procs, host, port, k):
+    """One real-time run of seed 000 over our bridge with python-can listening: a fresh
+    simulator, then `rollbase run`; returns (exit code, stdout, stderr, frames python-can saw,
+    the capture it wrote, the run's recording, the simulator's stderr after its clean stop)."""
     url = f"socketcand://{host}:{port}/vcan0"
-    sim = procs([binary("rollbase-sim"), "--bus", url, "--start", "scenario:seed000"], tmp_path / "sim.log")
+    sim = procs([binary("rollbase-sim"), "--bus", url, "--start", "scenario:seed000"], tmp_path / f"sim{k}.log")
     sim.wait_for("waiting for SYNC")
     bus = connect(host, port)
-    captured = tmp_path / "python-can-capture.log"
+    captured = tmp_path / f"python-can-capture{k}.log"
     writer = can.CanutilsLogWriter(str(captured), channel="vcan0")
-    rec = tmp_path / "run.mcap"
+    rec = tmp_path / f"run{k}.mcap"
     run = subprocess.Popen(
         [str(binary("rollbase")), "run", "--bus", url, "--trajectory", "scenario:seed000",
          "--duration", "5", "--json", "--record", str(rec)],
@@ -213,8 +215,32 @@ def test_python_can_socketcand_client_sees_a_realtime_run(tmp_path, procs, bridg
             run.kill()
         writer.stop()
         bus.shutdown()
+        sim_text = sim.stop()
+    return run.returncode, out, err, msgs, captured, rec, sim_text
+
+
+def stale_feedback_fault(out: str) -> str | None:
+    """The fault reason of a `--json` summary when it is a stale-feedback fault, else None."""
+    try:
+        reason = json.loads(out).get("fault_reason") or ""
+    except ValueError:
+        return None
+    return reason if reason.startswith("stale feedback") else None
+
+
+def test_python_can_socketcand_client_sees_a_realtime_run(tmp_path, procs, bridge, dbc_db):
+    host, port, _ = bridge
+    code, out, err, msgs, captured, rec, sim_text = socketcand_realtime_attempt(tmp_path, procs, host, port, 1)
+    # A host stall (a loaded CI machine: cycles 8.9 ms apart at p99) can hold the feedback back
+    # for more than the supervisor's stale limit, and the run then rightly stops in a fault.
+    # Only that fault earns one more run on a fresh simulator, as the real-time CLI tests and
+    # scripts/readme-socketcand.sh do; both summaries are printed if the second fails too.
+    first = out
+    if code == 1 and (reason := stale_feedback_fault(out)) is not None:
+        print(f"first run ended in a fault: {reason}; one more run")
+        code, out, err, msgs, captured, rec, sim_text = socketcand_realtime_attempt(tmp_path, procs, host, port, 2)
     # With --json the reason a run ended in a fault is in its summary on stdout, not on stderr.
-    assert run.returncode == 0, f"exit {run.returncode}; stderr: {err!r}; summary: {out[-2000:]}"
+    assert code == 0, f"exit {code}; stderr: {err!r}; summary: {out[-2000:]}; first run: {first[-600:]}"
     result = json.loads(out)
     assert result["supervisor_final_state"] == "stopped", result
     assert result["rejected_frames"] == 0, result
@@ -245,7 +271,6 @@ def test_python_can_socketcand_client_sees_a_realtime_run(tmp_path, procs, bridg
     with open(rec, "rb") as f:
         stats = make_reader(f).get_summary().statistics
     assert stats.message_count == sum(result["recorded_messages"].values())
-    sim_text = sim.stop()
     assert re.search(r"node 1: \w+, \d+ SYNCs answered, \d+ setpoints ok, 0 bad CRC, 0 bad counter", sim_text), sim_text
 
 
