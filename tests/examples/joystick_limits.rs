@@ -12,7 +12,10 @@
 //!   ×1 to ×10), with its margins as configured and with them removed (acceleration share
 //!   1.0, speed share 0.97, lateral acceleration 20 m/s²);
 //! - **where the default shaper's shortfall goes**: each cycle's (asked speed − reference
-//!   speed) booked under the limit the shaper reports as binding.
+//!   speed) booked under the limit the shaper reports as binding;
+//! - **the shaper with rolling turns** ([`rollbase_control::reference::roll`], off by default:
+//!   the direction turned within the steering limits while the speed stays up), its
+//!   shortfall booked the same way.
 //!
 //! `cargo run --release -p rollbase-tests --example joystick_limits` (about a second).
 
@@ -168,6 +171,27 @@ fn main() {
             "  ×{scale:<4}  {:21.1} %  {:14.1} %",
             100.0 * shaper(&p, default, &cmds).0,
             100.0 * shaper(&p, bare, &cmds).0
+        )
+        .ok();
+    }
+    writeln!(out).ok();
+    let rolling = ShaperConfig {
+        rolling_turns: true,
+        ..default
+    };
+    let (m, by) = shaper(&justin, rolling, &cmds);
+    writeln!(
+        out,
+        "the shaper with rolling turns (`rolling_turns`, off by default; {:.1} % travelled; \
+         points of the ideal path, time summed over the sessions):",
+        100.0 * m
+    )
+    .ok();
+    for (limit, (loss, time)) in by {
+        writeln!(
+            out,
+            "  {limit:22} {:5.1} points  {time:6.1} s",
+            100.0 * loss
         )
         .ok();
     }
