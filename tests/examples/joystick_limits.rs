@@ -120,6 +120,19 @@ fn shaper(
     (mean, by)
 }
 
+/// One line per binding limit: its shortfall (points of the ideal path) and time.
+fn shortfall_lines(out: &mut String, by: &BTreeMap<&'static str, (f64, f64)>) {
+    use std::fmt::Write as _;
+    for (limit, (loss, time)) in by {
+        writeln!(
+            out,
+            "  {limit:22} {:5.1} points  {time:6.1} s",
+            100.0 * loss
+        )
+        .ok();
+    }
+}
+
 fn main() {
     use std::fmt::Write as _;
     use std::io::Write as _;
@@ -187,14 +200,7 @@ fn main() {
         100.0 * m
     )
     .ok();
-    for (limit, (loss, time)) in by {
-        writeln!(
-            out,
-            "  {limit:22} {:5.1} points  {time:6.1} s",
-            100.0 * loss
-        )
-        .ok();
-    }
+    shortfall_lines(&mut out, &by);
     writeln!(out).ok();
     let (mean, by) = shaper(&justin, default, &cmds);
     writeln!(
@@ -204,14 +210,7 @@ fn main() {
         100.0 * mean
     )
     .ok();
-    for (limit, (loss, time)) in by {
-        writeln!(
-            out,
-            "  {limit:22} {:5.1} points  {time:6.1} s",
-            100.0 * loss
-        )
-        .ok();
-    }
+    shortfall_lines(&mut out, &by);
     // A closed pipe (`| head`) is not an error here.
     let _ = std::io::stdout().write_all(out.as_bytes());
 }

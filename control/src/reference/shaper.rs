@@ -2844,17 +2844,10 @@ impl Shaper {
 
     /// Advances one cycle and returns the reference sample (module docs).
     pub fn step(&mut self) -> ReferenceSample {
-        let dt = self.dt;
         let prev = self.qd;
         let (g, k, why) = self.twist_goal();
         if self.step_roll(&g, k, why) {
-            let avg = Twist {
-                vx: 0.5 * (prev[0] + self.qd[0]),
-                vy: 0.5 * (prev[1] + self.qd[1]),
-                omega: 0.5 * (prev[2] + self.qd[2]),
-            };
-            self.pose = crate::model::kinematics::se2_integrate(self.pose, &avg, dt);
-            self.t += dt;
+            self.integrate_pose(&prev);
             return self.sample();
         }
         self.step_legs(&g);
@@ -2899,14 +2892,8 @@ impl Shaper {
         } else {
             Limiting::None
         };
-        // Integrate the reference (trapezoid over the cycle); the legs follow their profile.
-        let avg = Twist {
-            vx: 0.5 * (prev[0] + self.qd[0]),
-            vy: 0.5 * (prev[1] + self.qd[1]),
-            omega: 0.5 * (prev[2] + self.qd[2]),
-        };
-        self.pose = crate::model::kinematics::se2_integrate(self.pose, &avg, dt);
-        self.t += dt;
+        // Integrate the reference; the legs follow their profile.
+        self.integrate_pose(&prev);
         if !matches!(self.phase, Phase::Start { .. }) {
             self.update_steering();
         }
@@ -2916,6 +2903,18 @@ impl Shaper {
             self.rest_dir = Some([self.qd[0], self.qd[1], self.qd[2]]);
         }
         self.sample()
+    }
+
+    /// Integrates the reference pose over the cycle (trapezoid from last cycle's twist
+    /// `prev`) and advances the clock.
+    fn integrate_pose(&mut self, prev: &Q) {
+        let avg = Twist {
+            vx: 0.5 * (prev[0] + self.qd[0]),
+            vy: 0.5 * (prev[1] + self.qd[1]),
+            omega: 0.5 * (prev[2] + self.qd[2]),
+        };
+        self.pose = crate::model::kinematics::se2_integrate(self.pose, &avg, self.dt);
+        self.t += self.dt;
     }
 
     /// A cycle of the rolling turn (module docs, "Rolling turns"), if one shapes the twist:
