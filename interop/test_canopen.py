@@ -258,9 +258,10 @@ def test_heartbeat_producer_and_consumer_with_emcy(network):
     assert state_of(struct.unpack("<H", d.sdo.upload(0x6041, 0))[0]) == "operation enabled"
     for _ in range(10):
         net.send_message(0x700 + MASTER, bytes([0x05]))
+        # The consumer's 100 ms run from the last heartbeat sent, not from after the sleep.
+        t_last = time.monotonic()
         time.sleep(0.02)
     d.emcy.reset()
-    t_last = time.monotonic()
     err = d.emcy.wait(0x8130, timeout=2)
     waited = time.monotonic() - t_last
     assert err is not None and err.code == 0x8130, err
