@@ -917,12 +917,7 @@ impl Shaper {
             self.steer[i] = if s.is_finite() { angle::wrap(s) } else { 0.0 };
             self.turn[i] = Turn::new(self.steer[i], 0.0, 0.0, self.window, self.dt);
         }
-        self.qd = [0.0; NQ];
-        self.qdd = [0.0; NQ];
-        self.qddd = [0.0; NQ];
-        self.steer_rate = [0.0; MAX_WHEELS];
-        self.steer_accel = [0.0; MAX_WHEELS];
-        self.rolling = [false; MAX_WHEELS];
+        self.stand_still();
         self.lock = [([0.0; 6], 0.0, 0.0); MAX_WHEELS];
         self.twist_cmd = Twist::default();
         self.smooth = [0.0; 3];
@@ -2905,6 +2900,16 @@ impl Shaper {
         self.sample()
     }
 
+    /// The twist and its derivatives at zero, no wheel steering or rolling.
+    fn stand_still(&mut self) {
+        self.qd = [0.0; NQ];
+        self.qdd = [0.0; NQ];
+        self.qddd = [0.0; NQ];
+        self.steer_rate = [0.0; MAX_WHEELS];
+        self.steer_accel = [0.0; MAX_WHEELS];
+        self.rolling = [false; MAX_WHEELS];
+    }
+
     /// Integrates the reference pose over the cycle (trapezoid from last cycle's twist
     /// `prev`) and advances the clock.
     fn integrate_pose(&mut self, prev: &Q) {
@@ -2969,12 +2974,7 @@ impl Shaper {
                 self.turn[i] = Turn::new(self.steer[i], 0.0, 0.0, self.window, self.dt);
             }
             self.roll = None;
-            self.qd = [0.0; NQ];
-            self.qdd = [0.0; NQ];
-            self.qddd = [0.0; NQ];
-            self.steer_rate = [0.0; MAX_WHEELS];
-            self.steer_accel = [0.0; MAX_WHEELS];
-            self.rolling = [false; MAX_WHEELS];
+            self.stand_still();
             self.phase = Phase::Cruise;
             return false;
         }
