@@ -22,6 +22,23 @@
 //!    ([`crate::tracking::dfl::held_wheels`]): the feedback's small corrections never turn a wheel the
 //!    ICR rests on; up to three times that speed the two are blended
 //!    ([`crate::tracking::dfl::steer_weights`]), so the hand-over is continuous.
+//! 5a. With a steering reference, a rolling centred wheel without a steering range is not
+//!    steered to atan2(u_i) itself but to the reference's angle φ_i* offset towards it by
+//!    at most [`REFERENCE_OFFSET`], at the reference's rate:
+//!    φ̇_i = φ̇_i* + `steer_kp`·(φ_i* + clamp(atan2(u_i) − φ_i*, ±2°) − φ_i).
+//!    Derivation: u_i = u_i* + δu_i, with δu_i the contact velocity of the feedback terms
+//!    k (z* − ẑ). Its angle off the reference's is δφ_i ≈ (u_i* × δu_i)/|u_i*|², which grows
+//!    as 1/|u_i*| when the reference slows: at 6 cm/s a 3 mm error (k_pos = 2) turns the
+//!    wheel 5° off where the reference rolls it, and the analytic rate of atan2(u_i) carries
+//!    that swing. Rolling turns ([`crate::reference::roll`]) turn the wheels while the base
+//!    rolls slowly (a reversal with a turn, a start with the wheels still turning), and a
+//!    wheel 5–9° off its direction at 0.2–0.4 m/s rolls sideways at 2–5 cm/s: 8–12 mm of
+//!    position error on issue 23's joystick sticks. Clamped, the wheel stays within 2° of
+//!    the reference's direction, and the correction across it is at most |u_i*| sin 2°
+//!    (1.7 cm/s at 0.5 m/s, where δφ_i is a fraction of a degree for millimetre errors, so
+//!    the clamp is idle); along it the rolling speed still corrects in full. With the
+//!    clamp the same sticks track to 2.0–3.0 mm and 0.20–0.31° (docs/time-scaling.md,
+//!    "Rolling turns").
 //! 6. Rolling speed = ± |u_i| cos(e_i) for steering error |e_i| < π/2, else 0: a wheel
 //!    that still points the wrong way does not roll, and rolls fully once aligned.
 //! 7. Desaturation (seed 004 Sect. on actuator limits, α_s scaling; WPILib
@@ -74,6 +91,10 @@ use crate::tracking::dfl::{
 };
 use crate::types::{Command, ReferenceSample, Twist, MAX_WHEELS};
 use std::f64::consts::{FRAC_PI_2, PI};
+
+/// Largest angle (rad) by which the feedback's correction turns a rolling wheel off the
+/// steering reference's angle (module docs, point 5a). 2°.
+pub const REFERENCE_OFFSET: f64 = 2.0 * std::f64::consts::PI / 180.0;
 
 /// Extra angle (rad) beyond π/2 before the platform-wide ±π branch is switched.
 pub const FLIP_HYSTERESIS: f64 = 0.3;
@@ -374,7 +395,16 @@ impl KinematicController {
             } else if moving[i] {
                 let e = angle::steer_error(range, target[i] + off, phi);
                 let scale = if e.abs() < FRAC_PI_2 { e.cos() } else { 0.0 };
-                let own = ff[i] + g.steer_kp * e;
+                let own = if r.steer.valid && range.is_none() {
+                    // Point 5a: the reference's angle, offset towards the commanded velocity
+                    // by at most REFERENCE_OFFSET, at the reference's rate.
+                    let d = angle::diff(target[i] + off, r.steer.angle[i])
+                        .clamp(-REFERENCE_OFFSET, REFERENCE_OFFSET);
+                    let ec = angle::diff(r.steer.angle[i] + d, phi);
+                    r.steer.rate[i] + g.steer_kp * ec
+                } else {
+                    ff[i] + g.steer_kp * e
+                };
                 // Near the hold speed, blended with the reference's angle (dfl::steer_weights).
                 let w = weight[i];
                 let rate = if w < 1.0 {
