@@ -94,3 +94,101 @@ fn the_shaper_never_creeps_while_a_joystick_asks_to_move_and_keeps_its_path() {
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
+
+/// Largest sideways speed (m/s) of a wheel's reference contact velocity across its steering
+/// reference with rolling turns: the shaper's `slip_speed` (3 mm/s), which caps a released
+/// wheel that is not yet aligned, plus 10 % for the window mean (the output is the product
+/// of the window means of μ and η̂ against the mean of the raw angles, which agree only to
+/// second order in the window's turn; 3.1 mm/s on seed 2 when this was set).
+const ROLL_SIDEWAYS: f64 = 1.1 * 0.003;
+/// Mean path share of the rolling turns at σ = 0 when this was last set: 88.9 % (86.7 %
+/// while a released wheel could roll at 1.5 cm/s across its direction).
+const ROLL_MEAN_PATH_ACHIEVED: f64 = 0.885;
+
+/// Rolling turns ([`rollbase_control::reference::roll`], off by default) on the eight
+/// sticks at every noise level: every wheel's reference contact velocity runs along its
+/// steering reference within [`ROLL_SIDEWAYS`] (what the plant turns into slip and leg
+/// motion: a released wheel crossing 86° off its direction at 1.4 cm/s moved a leg 3 mm in
+/// closed loop), every steering rate within the reference's share of the limit, and the
+/// noise-free mean path at least [`ROLL_MEAN_PATH_ACHIEVED`].
+#[test]
+fn rolling_turns_roll_every_wheel_along_its_steering_reference() {
+    use rollbase_control::reference::limits::contact_kinematics;
+    use rollbase_control::service::ports::CommandKind;
+    let p = Platform::justin();
+    let cfg = ShaperConfig {
+        rolling_turns: true,
+        ..ShaperConfig::default()
+    };
+    let rate_share = cfg.speed_fraction * p.limits.steer_rate;
+    let dt = p.dt();
+    let mut failures = Vec::new();
+    for sigma in [0.0, 0.02, 0.05] {
+        let mut mean = 0.0;
+        for seed in SEEDS {
+            let cmds = joystick_session(seed, SESSION_S, sigma);
+            let ideal = ideal_path_length(&cmds, p.service.command_timeout);
+            let mut s = Shaper::new(&p, cfg);
+            let (mut k, mut t, mut path) = (0usize, 0.0f64, 0.0f64);
+            let (mut side, mut rate) = ((0.0f64, 0.0f64), (0.0f64, 0.0f64));
+            while t < SESSION_S + RELEASE_S + 0.5 {
+                while k < cmds.len() && cmds[k].t <= t + 1e-9 {
+                    match cmds[k].kind {
+                        CommandKind::Motion(m) => s.command(m.twist, None),
+                        _ => s.halt(),
+                    }
+                    k += 1;
+                }
+                let r = s.step();
+                path += r.dz[0].hypot(r.dz[1]) * dt;
+                for i in 0..p.n() {
+                    let [u, _, _] = contact_kinematics(&p, i, &r);
+                    let a = r.steer.angle[i];
+                    let across = (-u[0] * a.sin() + u[1] * a.cos()).abs();
+                    if across > side.0 {
+                        side = (across, t);
+                    }
+                    if r.steer.rate[i].abs() > rate.0 {
+                        rate = (r.steer.rate[i].abs(), t);
+                    }
+                }
+                t += dt;
+            }
+            let share = path / ideal;
+            mean += share / SEEDS.len() as f64;
+            println!(
+                "ROLLING seed {seed} σ = {sigma}: path {:.1} %, largest sideways speed {:.2} mm/s \
+                 (t = {:.2} s), largest steering rate {:.3} rad/s",
+                100.0 * share,
+                1e3 * side.0,
+                side.1,
+                rate.0
+            );
+            if side.0 > ROLL_SIDEWAYS {
+                failures.push(format!(
+                    "seed {seed}, σ = {sigma}: a wheel's reference rolls {:.2} mm/s across its \
+                     steering reference at t = {:.2} s (≤ {:.2} mm/s)",
+                    1e3 * side.0,
+                    side.1,
+                    1e3 * ROLL_SIDEWAYS
+                ));
+            }
+            if rate.0 > rate_share * (1.0 + 1e-9) {
+                failures.push(format!(
+                    "seed {seed}, σ = {sigma}: steering rate {:.4} rad/s at t = {:.2} s (≤ \
+                     {rate_share} rad/s)",
+                    rate.0, rate.1
+                ));
+            }
+        }
+        println!("ROLLING σ = {sigma}: mean path {:.1} %", 100.0 * mean);
+        if sigma == 0.0 && mean < ROLL_MEAN_PATH_ACHIEVED {
+            failures.push(format!(
+                "σ = 0: mean path {:.1} % of the ideal (≥ {:.1} %)",
+                100.0 * mean,
+                100.0 * ROLL_MEAN_PATH_ACHIEVED
+            ));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}

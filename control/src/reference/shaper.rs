@@ -356,11 +356,11 @@
 //! steering limits while the speed stays up. The goal is the same (deadband, smoothing,
 //! avoidance, wheel-speed cap of [`Shaper::command`]); a halt brakes the speed; a leg
 //! command brings it to rest and hands back to the transitions, which move the legs. It
-//! starts only from rest. On the eight noise-free joystick sticks it travels 86.7 % of the
-//! ideal path (72.5 % with the transitions), every sample within every limit; it is off
-//! because the base does not yet track it within the 5 mm bound in closed loop
-//! (`docs/time-scaling.md`, "Rolling turns"). It does not yet keep a noisy goal's direction
-//! (a noisy stick reverses its wheels more often than with the transitions).
+//! starts only from rest. On the eight noise-free joystick sticks it travels 88.9 % of the
+//! ideal path (72.5 % with the transitions), every sample within every limit. Controller 2
+//! tracks it within the bounds in closed loop, the DFL does not (`docs/time-scaling.md`,
+//! "Rolling turns"). It is off because it does not yet keep a noisy goal's direction: a
+//! noisy stick reverses its wheels two to three times as often as with the transitions.
 //!
 //! Pure and allocation-free: fixed arrays, time advanced by the caller's cycle.
 
@@ -2952,6 +2952,7 @@ impl Shaper {
                 steer_accel: fa * self.limits.steer_accel,
                 lateral_accel: self.cfg.lateral_accel,
                 align_tolerance: self.cfg.align_tolerance,
+                slip_speed: self.cfg.slip_speed,
             };
             let dir = self.wheels_direction();
             self.roll = Some(Roll::new(
