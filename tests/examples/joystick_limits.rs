@@ -17,7 +17,7 @@
 //!   the direction turned within the steering limits while the speed stays up), its
 //!   shortfall booked the same way.
 //!
-//! `cargo run --release -p rollbase-tests --example joystick_limits` (about 6 s, 5 of them the rolling turns).
+//! `cargo run --release -p rollbase-tests --example joystick_limits` (about 4.5 s, most of it the rolling turns).
 
 use rollbase_control::reference::shaper::{Shaper, ShaperConfig};
 use rollbase_control::service::ports::{CommandEvent, CommandKind};

@@ -54,8 +54,8 @@ pub const DEFAULT_SPEED_FRACTION: f64 = 0.9;
 pub const DEFAULT_JERK_TIME: f64 = 0.04;
 
 /// Contact speed (m/s) below which a wheel holds its steering angle: its direction of travel
-/// is not defined well enough to steer by (1 cm/s: ten steps of the native protocol's wheel
-/// speed at r = 0.085 m, and the threshold of the chatter measure).
+/// is not defined well enough to steer by (2 cm/s: twenty steps of the native protocol's
+/// wheel speed at r = 0.085 m).
 pub const HOLD_SPEED: f64 = 0.02;
 
 /// What a motion asks of one wheel module (SI units, signed along the wheel's heading φ).

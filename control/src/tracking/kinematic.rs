@@ -37,8 +37,8 @@
 //!    the reference's direction, and the correction across it is at most |u_i*| sin 2°
 //!    (1.7 cm/s at 0.5 m/s, where δφ_i is a fraction of a degree for millimetre errors, so
 //!    the clamp is idle); along it the rolling speed still corrects in full. With the
-//!    clamp the same sticks track to 2.0–3.0 mm and 0.20–0.31° (docs/time-scaling.md,
-//!    "Rolling turns").
+//!    clamp the same sticks track to 2.0–2.5 mm and 0.19–0.25° (native; 2.8–3.8 mm and
+//!    0.29–0.37° CiA 402; docs/time-scaling.md, "Rolling turns").
 //! 6. Rolling speed = ± |u_i| cos(e_i) for steering error |e_i| < π/2, else 0: a wheel
 //!    that still points the wrong way does not roll, and rolls fully once aligned.
 //! 7. Desaturation (seed 004 Sect. on actuator limits, α_s scaling; WPILib
