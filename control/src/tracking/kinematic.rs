@@ -22,7 +22,8 @@
 //!    ([`crate::tracking::dfl::held_wheels`]): the feedback's small corrections never turn a wheel the
 //!    ICR rests on; up to three times that speed the two are blended
 //!    ([`crate::tracking::dfl::steer_weights`]), so the hand-over is continuous.
-//! 5a. With a steering reference, a rolling centred wheel without a steering range is not
+//!
+//!    5a. With a steering reference, a rolling centred wheel without a steering range is not
 //!    steered to atan2(u_i) itself but to the reference's angle φ_i* offset towards it by
 //!    at most [`REFERENCE_OFFSET`], at the reference's rate:
 //!    φ̇_i = φ̇_i* + `steer_kp`·(φ_i* + clamp(atan2(u_i) − φ_i*, ±2°) − φ_i).
