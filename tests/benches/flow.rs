@@ -8,7 +8,12 @@
 //! - `flow/shaper_joystick_every_cycle`: the live shaper per cycle with a command that changes
 //!   every cycle: the noisy joystick of `rollbase_tests::flow` (σ = 0.05 m/s, 2σ rad/s on ω)
 //!   sampled at 250 Hz, so every cycle brings a new goal (`Shaper::command`, then
-//!   `Shaper::step`), 30 s then the release to rest.
+//!   `Shaper::step`), 30 s then the release to rest;
+//! - `flow/shaper_rolling_joystick_every_cycle`: the same with rolling turns
+//!   (`ShaperConfig::rolling_turns`, experimental, off by default): each cycle runs the
+//!   turn's braking look-ahead (up to 800 cycles of every wheel's angle, bisected up to 12
+//!   times when a step fails it), so its worst step is what a real-time cycle must budget
+//!   for.
 //!
 //! As in `live.rs`, a counting global allocator counts heap allocations over one full replay
 //! of the joystick session (`ALLOCS <bench> <allocations> <steps>`: 0 expected, the shaper is
@@ -18,7 +23,7 @@
 //! before the run), so its allocations are printed for the record only.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use rollbase_control::reference::shaper::Shaper;
+use rollbase_control::reference::shaper::{Shaper, ShaperConfig};
 use rollbase_control::reference::timescale::{ScaledTrajectory, TimeScaleConfig};
 use rollbase_control::reference::trajectory::{QuinticSpline, Trajectory};
 use rollbase_control::service::ports::CommandKind;
@@ -50,9 +55,9 @@ fn twists(p: &Platform) -> Vec<Twist> {
         .collect()
 }
 
-/// The shaper at rest at the origin, legs nominal, wheels straight.
-fn fresh_shaper(p: &Platform) -> Shaper {
-    let mut s = Shaper::new(p, Default::default());
+/// The shaper of `cfg` at rest at the origin, legs nominal, wheels straight.
+fn fresh_shaper(p: &Platform, cfg: ShaperConfig) -> Shaper {
+    let mut s = Shaper::new(p, cfg);
     let legs: Vec<f64> = p.wheels.iter().map(|w| w.lambda_nominal).collect();
     s.reset(Pose::default(), &legs, &vec![0.0; p.n()]);
     s
@@ -84,35 +89,47 @@ fn shaper_bench(c: &mut Criterion) {
         println!("LOADAVG {}", l.trim());
     }
     let p = Platform::justin();
-
-    // The shaper, a new goal every cycle.
     let tw = twists(&p);
-    let id = "flow/shaper_joystick_every_cycle";
-    let mut s = fresh_shaper(&p);
+    let rolling = ShaperConfig {
+        rolling_turns: true,
+        ..ShaperConfig::default()
+    };
+    for (id, cfg) in [
+        ("flow/shaper_joystick_every_cycle", ShaperConfig::default()),
+        ("flow/shaper_rolling_joystick_every_cycle", rolling),
+    ] {
+        every_cycle(c, &p, &tw, id, cfg);
+    }
+}
+
+/// The shaper of `cfg`, a new goal every cycle: allocations over one replay, per-step times
+/// over [`TIMED_REPLAYS`] more, then criterion.
+fn every_cycle(c: &mut Criterion, p: &Platform, tw: &[Twist], id: &str, cfg: ShaperConfig) {
+    let mut s = fresh_shaper(p, cfg);
     reset();
     set_counting(true);
-    for t in &tw {
+    for t in tw {
         black_box(cycle(&mut s, black_box(t)));
     }
     set_counting(false);
     println!("ALLOCS {id} {} {}", allocations(), tw.len());
     let mut best = vec![f64::INFINITY; tw.len()];
     for _ in 0..TIMED_REPLAYS {
-        let mut s = fresh_shaper(&p);
-        for (b, t) in best.iter_mut().zip(&tw) {
+        let mut s = fresh_shaper(p, cfg);
+        for (b, t) in best.iter_mut().zip(tw) {
             let at = Instant::now();
             black_box(cycle(&mut s, black_box(t)));
             *b = b.min(at.elapsed().as_nanos() as f64);
         }
     }
     print_step_times(id, &best);
-    let mut s = fresh_shaper(&p);
+    let mut s = fresh_shaper(p, cfg);
     let mut k = 0usize;
     c.bench_function(id, |b| {
         b.iter(|| {
             if k == tw.len() {
                 k = 0;
-                s = fresh_shaper(&p);
+                s = fresh_shaper(p, cfg);
             }
             let r = cycle(&mut s, black_box(&tw[k]));
             k += 1;

@@ -364,13 +364,20 @@ impl Roll {
             }
         }
         let (mut e, mut vv) = (self.eta, v);
+        // Each wheel's angle at e, carried from one step to the next (one atan2 a step).
+        let mut ang = [0.0; MAX_WHEELS];
+        for (i, a) in ang.iter_mut().enumerate().take(self.n) {
+            *a = self.angle(e, i);
+        }
         for _ in 0..CHECK_STEPS {
             let (e1, v1) = Self::advance(e, vv, dt);
             for (i, pr) in prev.iter_mut().enumerate().take(self.n) {
+                let a1 = self.angle(e1, i);
+                let a0 = std::mem::replace(&mut ang[i], a1);
                 // A wheel steered now counts as steered all along: the look-ahead holds μ,
                 // and a wheel it would release at this μ stays steered if μ grows.
                 if self.steered[i] || (self.held_by(e, mu, i) && self.held_by(e1, mu, i)) {
-                    let r = wrap_half(self.angle(e1, i) - self.angle(e, i)) / dt;
+                    let r = wrap_half(a1 - a0) / dt;
                     worst = worst.max(r.abs() - self.lim.steer_rate);
                     if let Some(r0) = *pr {
                         worst = worst.max(((r - r0) / dt).abs() - self.lim.steer_accel);

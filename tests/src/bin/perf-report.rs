@@ -1315,6 +1315,11 @@ fn flow_rows(w: &mut String, o: &Options) {
             1e3,
         ),
         (
+            "flow/shaper_rolling_joystick_every_cycle",
+            "the same with rolling turns (experimental; per cycle)",
+            1e3,
+        ),
+        (
             "flow/plan_60_waypoints",
             "planning a 60-waypoint file (once per run)",
             1e6,
