@@ -235,15 +235,7 @@ pub fn feasible_path_length(cmds: &[CommandEvent], timeout: f64, p: &Platform) -
         .map(|ev| match ev.kind {
             CommandKind::Motion(m) => {
                 let t = m.twist;
-                let worst = p
-                    .wheels
-                    .iter()
-                    .map(|w| {
-                        let (sa, ca) = w.alpha.sin_cos();
-                        let l = w.lambda_nominal;
-                        (t.vx - t.omega * l * sa).hypot(t.vy + t.omega * l * ca)
-                    })
-                    .fold(0.0, f64::max);
+                let worst = fastest_contact(p, [t.vx, t.vy, t.omega]);
                 let k = if worst > vmax { vmax / worst } else { 1.0 };
                 motion(
                     ev.t,
@@ -258,6 +250,77 @@ pub fn feasible_path_length(cmds: &[CommandEvent], timeout: f64, p: &Platform) -
         })
         .collect();
     ideal_path_length(&scaled, timeout)
+}
+
+/// Largest contact speed (m/s) of `p`'s wheels, legs at their nominal extension, for the
+/// body twist `q` = (vx, vy, ω) (seed 000 eq. 18 with the legs at rest; also the largest
+/// change of a contact velocity for a change `q` of the twist, the map being linear).
+pub fn fastest_contact(p: &Platform, q: [f64; 3]) -> f64 {
+    p.wheels
+        .iter()
+        .map(|w| {
+            let (sa, ca) = w.alpha.sin_cos();
+            let l = w.lambda_nominal;
+            (q[0] - q[2] * l * sa).hypot(q[1] + q[2] * l * ca)
+        })
+        .fold(0.0, f64::max)
+}
+
+/// Path length (m) of the stream executed by a base whose wheels steer instantly: the twist
+/// moves each cycle of `p.dt()` straight towards the command in force (zero after a stop, the
+/// end of the stream or `timeout` s without a command), capped as a whole to
+/// `speed_fraction` of the wheel speed limit, with no wheel's contact velocity changing by
+/// more than `accel_fraction` of the wheel acceleration limit (at the contact point) per
+/// second, until it rests after the last event.
+///
+/// What the shaper's shares of the drives' speed and acceleration leave of
+/// [`ideal_path_length`] before any steering is asked for: a stick reversed at 0.8 m/s must
+/// brake through rest at the acceleration share whatever the wheels do. It is the path of a
+/// line transition (the shaper's default) without its steering constraints and jerk limit,
+/// not a bound on every shaper: a twist that swings round instead of passing through rest
+/// (a U-turn for a reversal) can travel more.
+pub fn unsteered_path_length(
+    cmds: &[CommandEvent],
+    timeout: f64,
+    p: &Platform,
+    speed_fraction: f64,
+    accel_fraction: f64,
+) -> f64 {
+    let dt = p.dt();
+    let vmax = speed_fraction * p.limits.wheel_speed * p.wheel_radius;
+    let step = accel_fraction * p.limits.wheel_accel * p.wheel_radius * dt;
+    let last = cmds.last().map_or(0.0, |e| e.t);
+    let (mut k, mut t, mut len) = (0usize, 0.0f64, 0.0f64);
+    let (mut goal, mut since) = ([0.0f64; 3], 0.0f64);
+    let mut q = [0.0f64; 3];
+    while t <= last + timeout || q.iter().any(|v| *v != 0.0) {
+        while k < cmds.len() && cmds[k].t <= t + 1e-9 {
+            goal = match cmds[k].kind {
+                CommandKind::Motion(m) => {
+                    let g = [m.twist.vx, m.twist.vy, m.twist.omega];
+                    let worst = fastest_contact(p, g);
+                    let c = if worst > vmax { vmax / worst } else { 1.0 };
+                    [c * g[0], c * g[1], c * g[2]]
+                }
+                _ => [0.0; 3],
+            };
+            since = cmds[k].t;
+            k += 1;
+        }
+        if t - since > timeout {
+            goal = [0.0; 3];
+        }
+        let d = [goal[0] - q[0], goal[1] - q[1], goal[2] - q[2]];
+        let worst = fastest_contact(p, d);
+        let f = if worst > step { step / worst } else { 1.0 };
+        let prev = q;
+        for c in 0..3 {
+            q[c] += f * d[c];
+        }
+        len += 0.5 * (prev[0].hypot(prev[1]) + q[0].hypot(q[1])) * dt;
+        t += dt;
+    }
+    len
 }
 
 /// Feeds a command stream to the live shaper alone (no bus, no plant), one step per cycle
@@ -2178,6 +2241,54 @@ mod tests {
         assert_eq!(v[1].worst.1, 3);
         assert!((v[1].worst.0.value.abs() - (6.0 - l.steer_accel * DT * 0.5) / DT).abs() < 1e-9);
         assert!(limit_violations(&recs[2..3], &p).is_empty());
+    }
+
+    #[test]
+    fn unsteered_path_length_brakes_and_starts_at_the_acceleration_share() {
+        let p = Platform::justin();
+        let a = 0.6 * p.limits.wheel_accel * p.wheel_radius;
+        let v = 0.5;
+        let go = motion(
+            0.0,
+            Twist {
+                vx: v,
+                ..Twist::default()
+            },
+        );
+        let end = CommandEvent {
+            t: 2.0,
+            kind: CommandKind::EndOfStream,
+        };
+        // Straight ahead for 2 s from rest, then a stop: the start loses v²/(2a) against the
+        // ideal and the stop adds as much (the trapezoid's two ramps), to within a cycle.
+        let got = unsteered_path_length(&[go, end], 5.0, &p, 0.9, 0.6);
+        let ideal = ideal_path_length(&[go, end], 5.0);
+        assert!((ideal - 2.0 * v).abs() < 1e-12);
+        assert!((got - ideal).abs() < v * p.dt(), "{got} against {ideal}");
+        // A reversal at t = 1 s: through rest at the acceleration share, so the base loses
+        // v²/a (braking and starting again) against the ideal, whose twist jumps.
+        let back = motion(
+            1.0,
+            Twist {
+                vx: -v,
+                ..Twist::default()
+            },
+        );
+        let got = unsteered_path_length(&[go, back, end], 5.0, &p, 0.9, 0.6);
+        let want = 2.0 * v - v * v / a;
+        assert!((got - want).abs() < v * p.dt(), "{got} against {want}");
+        // A wheel speed beyond the share is capped as a whole.
+        let fast = motion(
+            0.0,
+            Twist {
+                vx: 2.0,
+                ..Twist::default()
+            },
+        );
+        let vmax = 0.9 * p.limits.wheel_speed * p.wheel_radius;
+        let got = unsteered_path_length(&[fast, end], 5.0, &p, 0.9, 0.6);
+        let want = 2.0 * vmax;
+        assert!((got - want).abs() < vmax * p.dt(), "{got} against {want}");
     }
 
     #[test]
