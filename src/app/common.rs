@@ -10,7 +10,7 @@
 use clap::Args;
 use rollbase::ros2::{Ros2Args, Ros2Options};
 use rollbase_control::runtime::scenario::{self, Scenario};
-use rollbase_control::runtime::RuntimeConfig;
+use rollbase_control::runtime::{ControllerKind, RuntimeConfig};
 use rollbase_control::service::ports::BaseState;
 use rollbase_control::{Platform, Protocol};
 use std::path::{Path, PathBuf};
@@ -88,6 +88,11 @@ pub(crate) struct CommonRun {
     /// Singularity avoidance: on, off, locked (legs locked) or the scenario's default.
     #[arg(long)]
     pub(crate) avoidance: Option<String>,
+    /// Experimental: shape live commands as rolling turns (the wheels turn while the base
+    /// keeps rolling instead of slowing to re-steer; docs/time-scaling.md, "Rolling turns").
+    /// Needs `--controller kinematic`. Trajectories are not affected.
+    #[arg(long)]
+    pub(crate) rolling_turns: bool,
     /// Write an MCAP recording of the run.
     #[arg(long)]
     pub(crate) record: Option<PathBuf>,
@@ -239,6 +244,16 @@ pub(crate) fn runtime_config(
     }
     if let Some(a) = &common.avoidance {
         cfg.avoidance = scenario::avoidance_mode(a).map_err(CliError::Usage)?;
+    }
+    if common.rolling_turns {
+        if cfg.controller != ControllerKind::Kinematic {
+            return Err(CliError::Usage(
+                "--rolling-turns needs --controller kinematic: the DFL does not track rolling \
+                 turns within 5 mm (docs/time-scaling.md, \"Rolling turns\")"
+                    .into(),
+            ));
+        }
+        cfg.shaper.rolling_turns = true;
     }
     Ok(cfg)
 }
