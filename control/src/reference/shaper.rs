@@ -356,13 +356,17 @@
 //! steering limits while the speed stays up. The goal is the same (deadband, smoothing,
 //! avoidance, wheel-speed cap of [`Shaper::command`]); a halt brakes the speed; a leg
 //! command brings it to rest and hands back to the transitions, which move the legs. It
-//! starts only from rest. On the eight noise-free joystick sticks it travels 88.9 % of the
-//! ideal path (72.5 % with the transitions), every sample within every limit. Controller 2
-//! tracks it within the bounds in closed loop, the DFL does not (`docs/time-scaling.md`,
-//! "Rolling turns"). A noisy goal's direction is kept as with the transitions (its
-//! component along the present twist is followed while the rest is within the noise band).
-//! It is off because it does not meet issue 23's bounds on every noisy stick yet (one wheel
-//! of sixteen runs reverses 17 times beyond the command's own in 20 s, 10 allowed).
+//! starts only from rest. Its speed is shaped at the command the drives get, within
+//! `roll_speed_accel_fraction` of the wheel acceleration limit, and the reference is that
+//! command through the drives' lag (roll's module docs, "The speed and the drives' lag").
+//! On the eight noise-free joystick sticks it travels 90.7 % of the ideal path (72.5 % with
+//! the transitions), every sample within every limit. Controller 2 tracks it within the
+//! bounds in closed loop, the DFL does not (`docs/time-scaling.md`, "Rolling turns"); the
+//! CLI's `--rolling-turns` needs `--controller kinematic`. A noisy goal's direction is kept
+//! as with the transitions (its component along the present twist is followed while the
+//! rest is within the noise band). It is off because it does not meet issue 23's bounds on
+//! every noisy stick yet (three wheels of sixteen runs reverse 13–17 times beyond the
+//! command's own in 20 s, 10 allowed).
 //!
 //! Pure and allocation-free: fixed arrays, time advanced by the caller's cycle.
 
@@ -516,6 +520,11 @@ pub struct ShaperConfig {
     /// targets and no wheel has a steering range; the line transitions otherwise. Default
     /// off (module docs, "Rolling turns").
     pub rolling_turns: bool,
+    /// Fraction of the wheel acceleration limit a rolling turn's speed uses in the command
+    /// the drives get: its reference is that command through the drives' lag, so the lag
+    /// compensation adds nothing on top ([`crate::reference::roll`], "The speed and the
+    /// drives' lag"). Default 0.75, the rest for the feedback and the turn.
+    pub roll_speed_accel_fraction: f64,
 }
 
 impl Default for ShaperConfig {
@@ -538,6 +547,7 @@ impl Default for ShaperConfig {
             slip_speed: 0.003,
             ranged_turn_fraction: 0.7,
             rolling_turns: false,
+            roll_speed_accel_fraction: 0.75,
         }
     }
 }
@@ -727,6 +737,9 @@ pub struct Shaper {
     ca: [f64; MAX_WHEELS],
     rw: f64,
     limits: Limits,
+    /// The drives' wheel-speed time constant (s), which the rolling turns' speed is shaped
+    /// through.
+    drive_lag: f64,
     lam_min: [f64; MAX_WHEELS],
     lam_max: [f64; MAX_WHEELS],
     /// Per wheel, its steering range (module docs, "Steering ranges").
@@ -835,6 +848,7 @@ impl Shaper {
             ca,
             rw: p.wheel_radius,
             limits: p.limits,
+            drive_lag: p.drives.wheel_time_constant,
             lam_min,
             lam_max,
             ranges,
@@ -2955,6 +2969,8 @@ impl Shaper {
             let lim = RollLimits {
                 wheel_speed: fs * self.limits.wheel_speed * self.rw,
                 wheel_accel: self.contact_accel(false),
+                speed_accel: self.cfg.roll_speed_accel_fraction * self.limits.wheel_accel * self.rw,
+                drive_lag: self.drive_lag,
                 stop_accel: self.contact_accel(true),
                 steer_rate: fs * self.limits.steer_rate,
                 steer_accel: fa * self.limits.steer_accel,
