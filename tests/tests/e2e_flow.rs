@@ -487,18 +487,23 @@ const ROLL_SEEDS: [u64; 8] = [23, 1, 2, 3, 4, 5, 6, 7];
 /// about a point near the wheel, a drive lag in a hard stop); at Justin's default 2 /s a
 /// leg kept up to 3.4 mm of it (CiA 402), at 6 /s 2.1 mm, at 8 /s 1.8 mm.
 const ROLL_KIN_K_LEG: f64 = 8.0;
-/// Mean path share of the rolling-turn sessions when this was set: 90.9 % native, 90.8 %
-/// CiA 402 (per stick 85.3–95.4 %; issue 23 asks 90 % of each). 89.1 % and 89.5 % before
-/// the speed was shaped through the drives' lag (`roll.rs`, "The speed and the drives'
-/// lag").
+/// Mean path share of the noise-free rolling-turn sessions when this was set: 90.9 % native,
+/// 90.8 % CiA 402 (per stick 85.3–95.4 %; issue 23 asks 90 % of each). 89.1 % and 89.5 %
+/// before the speed was shaped through the drives' lag (`roll.rs`, "The speed and the
+/// drives' lag").
 const ROLL_MEAN_PATH_ACHIEVED: f64 = 0.905;
+/// Noise levels (m/s; 2σ rad/s on ω) of the rolling-turn sessions.
+const ROLL_SIGMAS: [f64; 3] = [0.0, 0.02, 0.05];
 
 /// Rolling turns ([`rollbase_control::reference::roll`], `rolling_turns`, off by default)
-/// tracked by controller 2 on the eight noise-free sticks, on `profile`: every session ends
-/// stopped, within the tracking bounds and every limit, within issue 23's reversal and
-/// aligning bounds; the mean path at least [`ROLL_MEAN_PATH_ACHIEVED`]. The DFL does not
-/// track them within 5 mm (4.6–26.9 mm: its reference wheel is steered by its compensator,
-/// not by the steering reference), hence controller 2.
+/// tracked by controller 2 on the eight sticks at σ = 0, 0.02 and 0.05 m/s, on `profile`:
+/// every session ends stopped, within the tracking bounds and every limit, within issue
+/// 23's reversal and aligning bounds (the reversals counted beyond the noise-free
+/// command's own); the noise-free mean path at least [`ROLL_MEAN_PATH_ACHIEVED`]. The path
+/// of each session is printed against issue 23's 90 % and not asserted: the noise-free
+/// sticks travel 85.3–95.4 %, the noisy ones 88.3–101 % of their noise-free run's. The DFL
+/// does not track rolling turns within 5 mm (4.6–26.9 mm: its reference wheel is steered
+/// by its compensator, not by the steering reference), hence controller 2.
 fn rolling_turns_by_controller_2(profile: Protocol) {
     use rollbase_control::runtime::ControllerKind;
     let mut p = rollbase_control::Platform::justin();
@@ -511,26 +516,33 @@ fn rolling_turns_by_controller_2(profile: Protocol) {
     let mut failures = Vec::new();
     let mut mean = 0.0;
     for seed in ROLL_SEEDS {
-        let cmds = joystick_session(seed, JOYSTICK_S, 0.0);
-        let ideal = ideal_path_length(&cmds, timeout);
-        let own = command_reversals(&cmds, &p);
-        let out = run_live(&opts, &cmds);
-        let fig = LiveFigures::of(&out, JOYSTICK_S, ideal, own);
-        let name = format!("rolling turns, stick {seed} ({})", profile_name(profile));
-        println!(
-            "FLOW {name}: {fig}; issue 23 bounds: {}",
-            issue_text(&fig.misses(&LiveBounds::ISSUE))
-        );
-        mean += fig.path_ratio() / ROLL_SEEDS.len() as f64;
-        let mut f = fig.misses(&LiveBounds {
-            path_share: 0.0,
-            ..LiveBounds::ISSUE
-        });
-        f.extend(common_failures(&out, &name));
-        failures.push((name, f));
+        let clean = joystick_session(seed, JOYSTICK_S, 0.0);
+        let ideal = ideal_path_length(&clean, timeout);
+        let own = command_reversals(&clean, &p);
+        for sigma in ROLL_SIGMAS {
+            let out = run_live(&opts, &joystick_session(seed, JOYSTICK_S, sigma));
+            let fig = LiveFigures::of(&out, JOYSTICK_S, ideal, own);
+            let name = format!(
+                "rolling turns, stick {seed}, σ = {sigma} ({})",
+                profile_name(profile)
+            );
+            println!(
+                "FLOW {name}: {fig}; issue 23 bounds: {}",
+                issue_text(&fig.misses(&LiveBounds::ISSUE))
+            );
+            if sigma == 0.0 {
+                mean += fig.path_ratio() / ROLL_SEEDS.len() as f64;
+            }
+            let mut f = fig.misses(&LiveBounds {
+                path_share: 0.0,
+                ..LiveBounds::ISSUE
+            });
+            f.extend(common_failures(&out, &name));
+            failures.push((name, f));
+        }
     }
     println!(
-        "FLOW rolling turns ({}): mean path {:.1} %",
+        "FLOW rolling turns ({}): noise-free mean path {:.1} %",
         profile_name(profile),
         100.0 * mean
     );
@@ -538,7 +550,7 @@ fn rolling_turns_by_controller_2(profile: Protocol) {
         failures.push((
             "mean".into(),
             vec![format!(
-                "mean path {:.1} % (≥ {:.1} %)",
+                "noise-free mean path {:.1} % (≥ {:.1} %)",
                 100.0 * mean,
                 100.0 * ROLL_MEAN_PATH_ACHIEVED
             )],
@@ -548,11 +560,11 @@ fn rolling_turns_by_controller_2(profile: Protocol) {
 }
 
 #[test]
-fn rolling_turns_by_controller_2_track_eight_noise_free_sticks_native() {
+fn rolling_turns_by_controller_2_track_eight_sticks_with_and_without_noise_native() {
     rolling_turns_by_controller_2(Protocol::Native);
 }
 
 #[test]
-fn rolling_turns_by_controller_2_track_eight_noise_free_sticks_cia402() {
+fn rolling_turns_by_controller_2_track_eight_sticks_with_and_without_noise_cia402() {
     rolling_turns_by_controller_2(Protocol::Cia402);
 }
