@@ -5,9 +5,9 @@
 //!
 //! - **steering-free bounds**: the twist moves straight towards the command (capped to the
 //!   wheel speed, one factor, direction kept), each cycle as far as the wheels' acceleration
-//!   allows, and nothing else: no steering limit, no alignment. What any shaper within those
-//!   two limits can travel at most while following the stick (it never moves faster than
-//!   the stick asks);
+//!   allows, and nothing else: no steering limit, no alignment ([`unsteered_path_length`]).
+//!   What a shaper that moves the twist along straight lines within those two limits can
+//!   travel at most while following the stick (it never moves faster than the stick asks);
 //! - **the shaper with Justin's steering limits scaled** (rate and acceleration together,
 //!   ×1 to ×10), with its margins as configured and with them removed (acceleration share
 //!   1.0, speed share 0.97, lateral acceleration 20 m/s²);
@@ -20,9 +20,11 @@
 //! `cargo run --release -p rollbase-tests --example joystick_limits` (about 4.5 s, most of it the rolling turns).
 
 use rollbase_control::reference::shaper::{Shaper, ShaperConfig};
-use rollbase_control::service::ports::{CommandEvent, CommandKind};
+use rollbase_control::service::ports::CommandEvent;
 use rollbase_control::Platform;
-use rollbase_tests::flow::{drive_shaper, ideal_path_length, joystick_session, RELEASE_S};
+use rollbase_tests::flow::{
+    drive_shaper, ideal_path_length, joystick_session, unsteered_path_length, RELEASE_S,
+};
 use std::collections::BTreeMap;
 
 /// The sticks of `tests/tests/shaper_streams.rs`.
@@ -41,55 +43,15 @@ fn until() -> f64 {
     SESSION_S + RELEASE_S + 0.5
 }
 
-/// Largest contact speed (m/s) of a twist q = (v_x, v_y, ω) over the wheels, legs nominal.
-fn fastest_wheel(p: &Platform, q: [f64; 3]) -> f64 {
-    p.wheels
-        .iter()
-        .map(|w| {
-            let (sa, ca) = w.alpha.sin_cos();
-            let l = w.lambda_nominal;
-            (q[0] - q[2] * l * sa).hypot(q[1] + q[2] * l * ca)
-        })
-        .fold(0.0, f64::max)
-}
-
-/// Mean path share of the steering-free follower (module docs) with the given shares of
-/// the wheel acceleration and speed limits.
+/// Mean path share of the steering-free follower (module docs;
+/// [`unsteered_path_length`]) with the given shares of the wheel acceleration and speed
+/// limits.
 fn steering_free(p: &Platform, cmds: &[Vec<CommandEvent>], accel: f64, speed: f64) -> f64 {
-    let dt = p.dt();
-    let amax = accel * p.limits.wheel_accel * p.wheel_radius;
-    let vmax = speed * p.limits.wheel_speed * p.wheel_radius;
-    let mut mean = 0.0;
-    for c in cmds {
-        let ideal = ideal_path_length(c, p.service.command_timeout);
-        let (mut k, mut t, mut path) = (0usize, 0.0f64, 0.0f64);
-        let (mut q, mut goal) = ([0.0f64; 3], [0.0f64; 3]);
-        while t < until() {
-            while k < c.len() && c[k].t <= t + 1e-9 {
-                goal = match c[k].kind {
-                    CommandKind::Motion(m) => [m.twist.vx, m.twist.vy, m.twist.omega],
-                    _ => [0.0; 3],
-                };
-                k += 1;
-            }
-            let cap = fastest_wheel(p, goal);
-            let g = goal.map(|x| if cap > vmax { x * vmax / cap } else { x });
-            let d = [g[0] - q[0], g[1] - q[1], g[2] - q[2]];
-            let step = fastest_wheel(p, d);
-            let f = if step > amax * dt {
-                amax * dt / step
-            } else {
-                1.0
-            };
-            for i in 0..3 {
-                q[i] += f * d[i];
-            }
-            path += q[0].hypot(q[1]) * dt;
-            t += dt;
-        }
-        mean += path / ideal / cmds.len() as f64;
-    }
-    mean
+    let timeout = p.service.command_timeout;
+    cmds.iter()
+        .map(|c| unsteered_path_length(c, timeout, p, speed, accel) / ideal_path_length(c, timeout))
+        .sum::<f64>()
+        / cmds.len() as f64
 }
 
 /// Mean path share of the shaper, and the shortfall (share of the ideal path, summed over
