@@ -250,8 +250,6 @@ pub struct Roll {
     /// through the drives' lag (module docs, "The speed and the drives' lag"); `None`
     /// without a lag (μ̄ is the window mean).
     spd: Option<[f64; 3]>,
-    /// The window mean of the raw μ one cycle ago.
-    box_prev: f64,
     /// Last cycle's cap on μ for the wheels not yet aligned, and for the wheel speed.
     cap_prev: f64,
     speed_cap_prev: f64,
@@ -349,7 +347,6 @@ impl Roll {
             k: 0,
             limiting: Limiting::None,
             spd: (lim.drive_lag > 0.0).then_some([0.0; 3]),
-            box_prev: 0.0,
             cap_prev: f64::INFINITY,
             speed_cap_prev: f64::INFINITY,
             follow: 0.0,
@@ -733,11 +730,14 @@ impl Roll {
     /// for b linear in between its samples (module docs, "The speed and the drives' lag").
     fn lag_speed(&mut self) {
         let (dt, wn) = (self.dt, self.window);
-        let b1 = (0..wn)
-            .map(|j| self.hm[(self.k + HIST - j) % HIST][0])
-            .sum::<f64>()
-            / wn as f64;
-        let b0 = std::mem::replace(&mut self.box_prev, b1);
+        // The window mean now (b₁) and one cycle ago (b₀), from the history (HIST ≥ wn + 2).
+        let mean = |from: usize| {
+            (from..from + wn)
+                .map(|j| self.hm[(self.k + HIST - j) % HIST][0])
+                .sum::<f64>()
+                / wn as f64
+        };
+        let (b1, b0) = (mean(0), mean(1));
         let tau = self.lim.drive_lag;
         let Some([r0, _, _]) = self.spd else {
             return;
