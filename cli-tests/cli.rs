@@ -1829,13 +1829,13 @@ fn rolling_turns_need_the_kinematic_controller_and_change_how_a_turn_is_driven()
         lines += &format!("{{\"t\": {t:.1}, \"vx\": {vx}, \"vy\": {vy}, \"omega\": 0.0}}\n");
     }
     std::fs::write(&file, lines).unwrap();
+    // A lockstep run of a 3 s file takes well under a second; 60 s is a hang.
     let run = |extra: &[&str]| {
-        rollbase()
-            .args(["demo", "--lockstep", "--json", "--commands"])
+        let mut c = rollbase();
+        c.args(["demo", "--lockstep", "--json", "--commands"])
             .arg(&file)
-            .args(extra)
-            .output()
-            .unwrap()
+            .args(extra);
+        output_within(c, Duration::from_secs(60))
     };
     let refused = run(&["--rolling-turns"]);
     let err = String::from_utf8_lossy(&refused.stderr);
